@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Idempotent set-up: .venv with the exact pins, the fix for the ROS wheels'
+# hard-coded include paths, and a colcon build of zeus_msgs and zeus_ros into
+# install/. A second run only re-runs the (incremental) colcon build.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+source scripts/ros_env.sh
+venv="$ZEUS_VENV"
+python_bin="${PYTHON:-python3.11}"
+
+if [ ! -x "$venv/bin/python" ]; then
+  echo "[setup] creating $venv with $python_bin"
+  "$python_bin" -m venv "$venv"
+fi
+
+want=$(sha256sum requirements.lock | cut -d' ' -f1)
+stamp="$venv/.requirements.sha256"
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "[setup] installing requirements.lock (first run takes a few minutes)"
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check pip==24.3.1
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r requirements.lock
+  echo "$want" > "$stamp"
+fi
+
+# The wheels' CMake exports name the include dirs of the machine they were
+# built on; point them at this venv's Python and numpy headers.
+py_inc=$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
+np_inc=$("$venv/bin/python" -c 'import numpy; print(numpy.get_include())')
+grep -rlZ --include='*.cmake' '/opt/python/cp311-cp311' "$venv/share" 2>/dev/null \
+  | xargs -0 -r sed -i \
+      -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$np_inc#g" \
+      -e "s#/opt/python/cp311-cp311/include/python3.11#$py_inc#g" || true
+
+# The venv's share/ holds many package.xml files; keep colcon out of it.
+touch "$venv/COLCON_IGNORE"
+
+echo "[setup] colcon build (zeus_msgs, zeus_ros)"
+"$venv/bin/colcon" --log-base "$root/log" build \
+  --base-paths "$root" "$root/msg_defs" \
+  --build-base "$root/build" --install-base "$root/install" \
+  --event-handlers console_direct- summary+ \
+  --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$venv/bin/python" \
+  >"$root/log/colcon_build.txt" 2>&1 || { cat "$root/log/colcon_build.txt"; exit 1; }
+tail -n 2 "$root/log/colcon_build.txt"

@@ -1,0 +1,30 @@
+"""Install the zeus_ros ament_python package (learning core, nodes, sim)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'zeus_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(include=['zeus_ros', 'zeus_ros.*', 'sim_node', 'sim_node.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='zeus_ros developers',
+    maintainer_email='zeus-ros@example.com',
+    description='ZeUS zero-shot adaptation on ROS 2 with a live-swappable MuJoCo simulation.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'sim_node = sim_node.node:main',
+        ],
+    },
+)

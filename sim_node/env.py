@@ -1,0 +1,293 @@
+"""One parameter-varied MuJoCo environment, shared by the trainer and sim_node.
+
+`ParamEnv` runs a dm_control task (walker walk, cheetah run, finger spin) on a
+model built for one value of the family's parameter, steps it at the task's
+control rate for 1000-step episodes, and can swap the parameter mid-episode:
+the model is rebuilt and the whole simulator state (positions, velocities,
+actuator state, warm start, time) carried over, so motion continues.
+
+The observation is a function of joint positions and velocities only (see
+`ObservationLayout`), so the sim node's `sensor_msgs/JointState` carries
+everything the policy needs, and the vector rebuilt from it is bit-identical.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+import xml.etree.ElementTree as ElementTree
+
+from dm_control.rl import control
+from dm_control.suite import cheetah, finger, walker
+import mujoco
+import numpy as np
+
+from sim_node.families import DOMAIN_MODELS, FamilySpec, get_family
+
+EPISODE_STEPS = 1000
+
+# Control period of each domain, as dm_control's walk/run/spin tasks use it.
+CONTROL_TIMESTEP = {'walker': 0.025, 'cheetah': 0.01, 'finger': 0.02}
+
+_PHYSICS = {'walker': walker.Physics, 'cheetah': cheetah.Physics, 'finger': finger.Physics}
+
+# Horizontal position is dropped from the observation: the tasks are invariant
+# to it, and it grows without bound while the robot moves.
+_DROPPED_JOINTS = frozenset({'rootx'})
+
+
+class CheetahTargetVelocity(cheetah.Cheetah):
+    """Cheetah with MELD's cheetah-vel reward: -|v - v_target| - 0.05 |a|^2."""
+
+    def __init__(self, target_velocity: float, random=None):
+        super().__init__(random=random)
+        self.target_velocity = float(target_velocity)
+
+    def get_reward(self, physics):  # noqa: D102
+        speed_error = abs(physics.speed() - self.target_velocity)
+        control_cost = 0.05 * float(np.sum(np.square(physics.data.ctrl)))
+        return -speed_error - control_cost
+
+
+def _make_task(spec: FamilySpec, value: float, random: np.random.RandomState):
+    if spec.domain == 'walker':
+        return walker.PlanarWalker(move_speed=walker._WALK_SPEED, random=random)
+    if spec.domain == 'finger':
+        return finger.Spin(random=random)
+    if spec.reward_varies_only:
+        return CheetahTargetVelocity(value, random=random)
+    return cheetah.Cheetah(random=random)
+
+
+def build_physics(spec: FamilySpec, value: float):
+    """Compile the family's MuJoCo model with the parameter set to `value`."""
+    xml, assets = DOMAIN_MODELS[spec.domain]()
+    xml = xml.decode() if isinstance(xml, bytes) else xml
+    root = ElementTree.fromstring(spec.edit_xml(xml, value))
+    # The compiler's `settotalmass` is deprecated in MuJoCo 3.x; do the same
+    # rescaling (masses and inertias to a fixed total) on the compiled model.
+    compiler = root.find('compiler')
+    total_mass = None
+    if compiler is not None and compiler.get('settotalmass') is not None:
+        total_mass = float(compiler.attrib.pop('settotalmass'))
+    physics = _PHYSICS[spec.domain].from_xml_string(
+        ElementTree.tostring(root, encoding='unicode'), assets)
+    if total_mass is not None:
+        mujoco.mj_setTotalmass(physics.model.ptr, total_mass)
+        mujoco.mj_setConst(physics.model.ptr, physics.data.ptr)
+    return physics
+
+
+@dataclass(frozen=True)
+class ObservationLayout:
+    """How the policy's observation is made from joint positions and velocities.
+
+    Per joint, in model order: its position, or (cos, sin) for a hinge without
+    limits (a free rotation, which would otherwise wrap), or nothing for the
+    dropped horizontal position; then every joint velocity.
+    """
+
+    joint_names: tuple[str, ...]
+    position_encoding: tuple[str, ...]  # 'raw', 'angle' (cos, sin) or 'drop'
+
+    @classmethod
+    def from_model(cls, model: mujoco.MjModel) -> 'ObservationLayout':
+        """Read the layout off a model whose joints are all hinges or slides."""
+        names, encodings = [], []
+        for j in range(model.njnt):
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
+            jtype = int(model.jnt_type[j])
+            if jtype not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+                raise ValueError(f'joint {name!r} is not a hinge or slide joint')
+            names.append(name)
+            if name in _DROPPED_JOINTS:
+                encodings.append('drop')
+            elif jtype == mujoco.mjtJoint.mjJNT_HINGE and not model.jnt_limited[j]:
+                encodings.append('angle')
+            else:
+                encodings.append('raw')
+        return cls(tuple(names), tuple(encodings))
+
+    @property
+    def size(self) -> int:
+        """Length of the observation vector."""
+        width = {'raw': 1, 'angle': 2, 'drop': 0}
+        return sum(width[e] for e in self.position_encoding) + len(self.joint_names)
+
+    def observation(self, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        """Observation from joint positions and velocities in `joint_names` order."""
+        parts = []
+        for encoding, q in zip(self.position_encoding, positions, strict=True):
+            if encoding == 'raw':
+                parts.append(q)
+            elif encoding == 'angle':
+                parts.extend((math.cos(q), math.sin(q)))
+        return np.concatenate([np.asarray(parts, dtype=np.float64),
+                               np.asarray(velocities, dtype=np.float64)])
+
+    def observation_from_joint_state(self, names, positions, velocities) -> np.ndarray:
+        """Observation from a JointState's fields; the names may be in any order."""
+        index = {name: i for i, name in enumerate(names)}
+        missing = [n for n in self.joint_names if n not in index]
+        if missing:
+            raise ValueError(f'joint state lacks joints {missing}')
+        order = [index[n] for n in self.joint_names]
+        return self.observation(np.asarray(positions, dtype=np.float64)[order],
+                                np.asarray(velocities, dtype=np.float64)[order])
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one control step returns."""
+
+    observation: np.ndarray
+    reward: float
+    terminal: bool
+    truncated: bool
+    # Set when MuJoCo became unstable: the episode was reset, and the
+    # observation is the new episode's first one.
+    instability: str | None = None
+
+
+def check_action(action, action_dim: int) -> tuple[np.ndarray | None, str | None]:
+    """Validate an action: a finite vector of the right length, clipped to [-1, 1].
+
+    Returns (action, None) when usable, (None, reason) when not.
+    """
+    try:
+        array = np.asarray(action, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None, 'action is not numeric'
+    if array.shape != (action_dim,):
+        return None, f'action has {array.size} values, expected {action_dim}'
+    if not np.all(np.isfinite(array)):
+        return None, 'action contains NaN or inf'
+    return np.clip(array, -1.0, 1.0), None
+
+
+class ParamEnv:
+    """A dm_control task whose physical parameter can change at a step boundary."""
+
+    def __init__(self, family: str, value: float | None = None, seed: int | None = 0,
+                 episode_steps: int = EPISODE_STEPS):
+        self.spec = get_family(family)
+        self.episode_steps = episode_steps
+        self.control_timestep = CONTROL_TIMESTEP[self.spec.domain]
+        self._random = np.random.RandomState(seed)
+        self._value = float(self.spec.default if value is None else value)
+        self._require_valid(self._value)
+        self._physics = build_physics(self.spec, self._value)
+        self._task = _make_task(self.spec, self._value, self._random)
+        self._n_sub_steps = int(round(self.control_timestep / self._physics.model.opt.timestep))
+        model = self._physics.model
+        self.layout = ObservationLayout.from_model(model.ptr)
+        self.actuator_names = tuple(model.id2name(i, 'actuator') for i in range(model.nu))
+        self.step_count = 0
+        self._reset_physics()
+
+    # -- properties -------------------------------------------------------
+    @property
+    def family(self) -> str:
+        """The family's name."""
+        return self.spec.name
+
+    @property
+    def param_value(self) -> float:
+        """The parameter value in force."""
+        return self._value
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """All joints, root degrees of freedom included, in model order."""
+        return self.layout.joint_names
+
+    @property
+    def obs_dim(self) -> int:
+        """Length of the observation vector."""
+        return self.layout.size
+
+    @property
+    def action_dim(self) -> int:
+        """Number of actuators."""
+        return len(self.actuator_names)
+
+    @property
+    def time(self) -> float:
+        """Simulated time within the episode, in seconds."""
+        return float(self._physics.data.time)
+
+    @property
+    def physics(self):
+        """The dm_control Physics in force (rebuilt on a parameter swap)."""
+        return self._physics
+
+    def joint_positions(self) -> np.ndarray:
+        """Joint positions in `joint_names` order (a copy)."""
+        return self._physics.data.qpos.copy()
+
+    def joint_velocities(self) -> np.ndarray:
+        """Joint velocities in `joint_names` order (a copy)."""
+        return self._physics.data.qvel.copy()
+
+    def observation(self) -> np.ndarray:
+        """Return the policy's observation of the current state."""
+        data = self._physics.data
+        return self.layout.observation(data.qpos, data.qvel)
+
+    # -- episode control --------------------------------------------------
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Start a new episode; a seed restarts the random stream, None continues it."""
+        if seed is not None:
+            self._random.seed(seed)
+        self._reset_physics()
+        return self.observation()
+
+    def step(self, action) -> StepResult:
+        """Apply a normalised action for one control period.
+
+        Raises ValueError for an action that `check_action` rejects: callers
+        decide what to apply instead, nothing invalid reaches MuJoCo.
+        """
+        clean, reason = check_action(action, self.action_dim)
+        if reason is not None:
+            raise ValueError(reason)
+        try:
+            self._task.before_step(clean, self._physics)
+            self._physics.step(self._n_sub_steps)
+            self._task.after_step(self._physics)
+            reward = float(self._task.get_reward(self._physics))
+            observation = self.observation()
+            if not (np.all(np.isfinite(observation)) and math.isfinite(reward)):
+                raise control.PhysicsError('non-finite state or reward')
+        except control.PhysicsError as error:
+            self._reset_physics()
+            return StepResult(self.observation(), 0.0, False, True, instability=str(error))
+        self.step_count += 1
+        truncated = self.step_count >= self.episode_steps
+        return StepResult(observation, reward, False, truncated)
+
+    def set_param(self, value: float) -> None:
+        """Put a new parameter value into force, keeping the simulator state."""
+        value = float(value)
+        self._require_valid(value)
+        old = self._physics.data
+        physics = build_physics(self.spec, value)
+        new = physics.data
+        # Same joints, actuators and activations: only sizes/friction/masses change.
+        for field in ('qpos', 'qvel', 'act', 'ctrl', 'qacc_warmstart'):
+            getattr(new, field)[:] = getattr(old, field)
+        new.time = old.time
+        physics.forward()
+        self._physics = physics
+        self._task = _make_task(self.spec, value, self._random)
+        self._value = value
+
+    def _require_valid(self, value: float) -> None:
+        reason = self.spec.check_value(value)
+        if reason is not None:
+            raise ValueError(reason)
+
+    def _reset_physics(self) -> None:
+        self.step_count = 0
+        with self._physics.reset_context():
+            self._task.initialize_episode(self._physics)

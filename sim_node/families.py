@@ -1,0 +1,186 @@
+"""Registry of parameter-varied environment families (paper appendix, Tables 2-6).
+
+Each family names one physical (or reward) parameter, the values of the
+paper's train / interpolation / extrapolation splits exactly as printed, and a
+wider, physically sane range that live swaps may use. The model edits that put
+a value into force live here too, so the trainer and the sim node build the
+same MuJoCo model for the same value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+import xml.etree.ElementTree as ElementTree
+
+from dm_control.suite import cheetah, finger, walker
+
+SPLITS = ('train', 'interpolation', 'extrapolation')
+
+
+def _fmt(values) -> str:
+    return ' '.join(f'{float(v):.10g}' for v in values)
+
+
+def _walker_friction(xml: str, friction: float) -> str:
+    # MuJoCo combines two geoms' friction by taking the maximum, so changing
+    # only the floor would leave every contact at the walker's default 0.7
+    # for any value below it. Set the default class that the floor and all
+    # walker geoms share: every foot-ground contact then has this friction.
+    root = ElementTree.fromstring(xml)
+    geom_default = root.find('./default/geom')
+    _, torsional, rolling = geom_default.get('friction').split()
+    geom_default.set('friction', f'{friction:.10g} {torsional} {rolling}')
+    return ElementTree.tostring(root, encoding='unicode')
+
+
+def _walker_foot_length(xml: str, half_length: float) -> str:
+    # Both feet (public variants change only one). The value is the capsule's
+    # half-length, MJCF `size[1]` (dm_control's default is 0.1).
+    root = ElementTree.fromstring(xml)
+    for name in ('right_foot', 'left_foot'):
+        geom = root.find(f".//geom[@name='{name}']")
+        radius = geom.get('size').split()[0]
+        geom.set('size', f'{radius} {half_length:.10g}')
+    return ElementTree.tostring(root, encoding='unicode')
+
+
+def _cheetah_torso_length(xml: str, length: float) -> str:
+    # The torso capsule spans [-L/2, L/2]; the thighs hang from its ends and
+    # the head sits 0.1 beyond the front end. `settotalmass` in the model makes
+    # MuJoCo rescale all masses so the total stays 14 kg: a longer torso takes
+    # mass from the legs.
+    half = length / 2.0
+    root = ElementTree.fromstring(xml)
+    root.find(".//geom[@name='torso']").set('fromto', _fmt((-half, 0, 0, half, 0, 0)))
+    root.find(".//body[@name='bthigh']").set('pos', _fmt((-half, 0, 0)))
+    root.find(".//body[@name='fthigh']").set('pos', _fmt((half, 0, 0)))
+    root.find(".//geom[@name='head']").set('pos', _fmt((half + 0.1, 0, 0.1)))
+    return ElementTree.tostring(root, encoding='unicode')
+
+
+def _finger_distal_length(xml: str, length: float) -> str:
+    # "Finger size" is the length of the distal segment, the one whose
+    # fingertip strikes the spinner (dm_control's default is 0.16). A shorter
+    # finger reaches the spinner less or not at all, a longer one sweeps
+    # farther with more inertia: the dynamics really change. (Public variants
+    # moved only the touch-sensor sites, which changes nothing.)
+    root = ElementTree.fromstring(xml)
+    root.find(".//geom[@name='distal']").set('fromto', _fmt((0, 0, 0, 0, 0, -length)))
+    tip_start = max(length - 0.03, 0.0)
+    root.find(".//geom[@name='fingertip']").set(
+        'fromto', _fmt((0, 0, -tip_start, 0, 0, -(length + 0.001))))
+    for site, x in (('touchtop', 0.01), ('touchbottom', -0.01)):
+        root.find(f".//site[@name='{site}']").set('pos', _fmt((x, 0, -(length + 0.01))))
+    return ElementTree.tostring(root, encoding='unicode')
+
+
+def _unchanged(xml: str, _value: float) -> str:
+    return xml
+
+
+@dataclass(frozen=True)
+class FamilySpec:
+    """One environment family: a dm_control task and one varied parameter."""
+
+    name: str
+    domain: str
+    param_name: str
+    param_unit: str
+    default: float
+    train: tuple[float, ...]
+    interpolation: tuple[float, ...]
+    extrapolation: tuple[float, ...]
+    live_range: tuple[float, float]
+    alpha_psi: float
+    description: str
+    edit_xml: Callable[[str, float], str]
+    reward_varies_only: bool = False
+
+    def split(self, name: str) -> tuple[float, ...]:
+        """Parameter values of a split: train, interpolation or extrapolation."""
+        if name not in SPLITS:
+            raise ValueError(f'unknown split {name!r}; expected one of {SPLITS}')
+        return getattr(self, name)
+
+    def check_value(self, value: float) -> str | None:
+        """Return why a value cannot be put into force, or None when it can."""
+        lo, hi = self.live_range
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            return f'{self.param_name} must be a number, got {value!r}'
+        if value != value:
+            return f'{self.param_name} must not be NaN'
+        if not lo <= value <= hi:
+            return f'{self.param_name}={value:g} is outside the allowed range [{lo:g}, {hi:g}]'
+        return None
+
+
+FAMILIES: dict[str, FamilySpec] = {
+    spec.name: spec
+    for spec in (
+        FamilySpec(
+            name='walker-walk-v0', domain='walker', param_name='friction', param_unit='',
+            default=0.7,
+            train=(0.8, 0.85, 0.9, 0.95, 1.2, 1.25, 1.3, 1.35),
+            interpolation=(1.0, 1.05, 1.1, 1.15),
+            extrapolation=(0.3, 0.5, 0.7, 0.75, 1.4, 1.45, 1.7, 1.9),
+            live_range=(0.05, 3.0), alpha_psi=2.0,
+            description='Walker walk; sliding friction of every foot-ground contact (Table 4).',
+            edit_xml=_walker_friction),
+        FamilySpec(
+            name='walker-walk-v1', domain='walker', param_name='foot_length', param_unit='m',
+            default=0.1,
+            train=(0.09, 0.095, 0.1, 0.105, 0.13, 0.135, 0.14, 0.145),
+            interpolation=(0.11, 0.115, 0.12, 0.125),
+            extrapolation=(0.03, 0.06, 0.08, 0.085, 0.15, 0.155, 0.18, 0.21),
+            live_range=(0.02, 0.3), alpha_psi=0.1,
+            description='Walker walk; half-length of both foot capsules (Table 5).',
+            edit_xml=_walker_foot_length),
+        FamilySpec(
+            name='cheetah-run-v0', domain='cheetah', param_name='torso_length', param_unit='m',
+            default=1.0,
+            train=(0.6, 0.65, 0.7, 0.75, 1.0, 1.05, 1.1, 1.15, 1.25, 1.4, 1.5),
+            interpolation=(0.8, 0.85, 0.9, 0.95),
+            # As printed: 1.25, 1.4 and 1.5 are in both train and extrapolation.
+            extrapolation=(0.3, 0.4, 0.5, 0.55, 1.2, 1.25, 1.4, 1.5),
+            live_range=(0.2, 2.0), alpha_psi=1.0,
+            description='Cheetah run; torso length, total mass kept at 14 kg (Table 3).',
+            edit_xml=_cheetah_torso_length),
+        FamilySpec(
+            name='finger-spin-v0', domain='finger', param_name='finger_length', param_unit='m',
+            default=0.16,
+            train=(0.05, 0.0625, 0.075, 0.0875, 0.15, 0.1625, 0.175, 0.1875),
+            interpolation=(0.1, 0.1125, 0.125, 0.1375),
+            extrapolation=(0.01, 0.0125, 0.025, 0.0375, 0.2, 0.2125, 0.35, 0.5),
+            live_range=(0.005, 0.6), alpha_psi=0.5,
+            description='Finger spin; length of the distal finger segment (Table 2).',
+            edit_xml=_finger_distal_length),
+        FamilySpec(
+            name='cheetah-run-v1', domain='cheetah', param_name='target_velocity',
+            param_unit='m/s', default=1.5,
+            train=(0.0, 0.43, 0.86, 1.29, 1.71, 2.14, 2.57, 3.0),
+            # Table 6 has one evaluation split; it lies inside the train range.
+            interpolation=(0.4, 0.78, 1.11, 1.47, 1.83, 2.18, 2.55, 2.9),
+            extrapolation=(),
+            live_range=(-1.0, 6.0), alpha_psi=1.0,
+            description="Cheetah; reward -|v - v_target| - 0.05|a|^2 as MELD's cheetah-vel "
+                        '(Table 6); dynamics unchanged.',
+            edit_xml=_unchanged, reward_varies_only=True),
+    )
+}
+
+DOMAIN_MODELS: dict[str, Callable[[], tuple[str, dict]]] = {
+    'walker': walker.get_model_and_assets,
+    'cheetah': cheetah.get_model_and_assets,
+    'finger': finger.get_model_and_assets,
+}
+
+
+def get_family(name: str) -> FamilySpec:
+    """Look a family up by name, with the known names in the error."""
+    try:
+        return FAMILIES[name]
+    except KeyError:
+        raise ValueError(f'unknown family {name!r}; known: {", ".join(FAMILIES)}') from None

@@ -1,0 +1,27 @@
+# zeus_ros: `make demo` and `make test` do all set-up themselves (make setup).
+SHELL := /bin/bash
+.SHELLFLAGS := -eo pipefail -c
+
+# DDS discovery never leaves this machine (scripts/ros_env.sh sets the same).
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
+
+# A shell with the venv, the ROS env and the colcon install overlay.
+IN_WS := source scripts/ros_env.sh && source .venv/bin/activate && source install/setup.bash &&
+
+.PHONY: setup test demo lint bench clean
+
+setup:
+	bash scripts/setup.sh
+
+test: setup
+	$(IN_WS) python -m pytest -q test
+
+demo: setup
+	$(IN_WS) python scripts/demo.py
+
+lint: setup
+	$(IN_WS) ruff check .
+
+clean:
+	rm -rf build install log demo_out

@@ -1,0 +1,287 @@
+"""sim_node: a parameter-varied MuJoCo robot on ROS 2, with live physics swaps.
+
+Publishes /joint_states, /zeus/step and /clock; steps on /joint_commands.
+In `lockstep` mode every published state waits for the command that answers
+its stamp (zero action after `command_timeout`); in `realtime` mode a timer
+steps at the control rate times `real_time_factor` on the latest command.
+The family's physical parameter is a ROS parameter: setting it puts the new
+physics into force at the next step boundary, the robot's state carried over.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from zeus_msgs.msg import StepInfo
+from zeus_msgs.srv import Reset
+
+from sim_node.env import ParamEnv
+from sim_node.families import FAMILIES, get_family
+from sim_node.protocol import ns_to_stamp, parse_command, stamp_to_ns
+
+MODES = ('lockstep', 'realtime')
+# Reliable, shallow queues: lockstep must not lose a state or a command, and a
+# depth of 10 bounds the backlog a slow subscriber can build up.
+STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+WARN_PERIOD_S = 2.0
+
+
+def _describe(text: str, read_only: bool = False, **ranges) -> ParameterDescriptor:
+    return ParameterDescriptor(description=text, read_only=read_only, **ranges)
+
+
+class SimNode(Node):
+    """Thin ROS shell around `ParamEnv`."""
+
+    def __init__(self):
+        super().__init__('sim_node')
+        family = self.declare_parameter('family', 'walker-walk-v0', _describe(
+            f'Environment family (read-only): one of {", ".join(FAMILIES)}.',
+            read_only=True)).value
+        self.spec = get_family(family)
+        lo, hi = self.spec.live_range
+        self.declare_parameter('seed', 0, _describe(
+            'Seed of the random stream for initial states; a change applies at the next reset.',
+            integer_range=[IntegerRange(from_value=0, to_value=2**31 - 1, step=1)]))
+        self.declare_parameter('mode', 'lockstep', _describe(
+            'lockstep: wait for the command answering each state; realtime: step on a timer.'))
+        self.declare_parameter('real_time_factor', 1.0, _describe(
+            'realtime mode: simulated seconds per wall-clock second.',
+            floating_point_range=[FloatingPointRange(from_value=0.01, to_value=100.0)]))
+        self.declare_parameter('command_timeout', 0.5, _describe(
+            'Seconds without a (matching) command before a zero action is applied.',
+            floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)]))
+        self.declare_parameter(self.spec.param_name, float(self.spec.default), _describe(
+            f'{self.spec.description} Live swap: takes effect at the next step.',
+            floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi)]))
+        self.add_on_set_parameters_callback(self.validate_parameters_callback)
+        self.add_post_set_parameters_callback(self.apply_parameters_callback)
+
+        self.env = ParamEnv(family, self._param(self.spec.param_name),
+                            seed=self._param('seed'))
+        self.dt_ns = int(round(self.env.control_timestep * 1e9))
+        self.tick = 0            # published states since start; the sim clock is tick * dt
+        self.episode = 0
+        self.pending_value: float | None = None
+        self.awaited_ns: int | None = None
+        self.awaited_since = 0.0
+        self.latest_action = np.zeros(self.env.action_dim)
+        self.latest_action_time = -np.inf
+        self.counters = {'rejected': 0, 'stale': 0, 'timeouts': 0, 'instabilities': 0}
+        self._last_warn: dict[str, float] = {}
+
+        self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
+        self.step_pub = self.create_publisher(StepInfo, '/zeus/step', STATE_QOS)
+        self.clock_pub = self.create_publisher(Clock, '/clock', STATE_QOS)
+        self.create_subscription(JointState, '/joint_commands', self.command_callback,
+                                 STATE_QOS)
+        self.create_service(Reset, '~/reset', self.reset_callback)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_timer(1.0, self.diagnostics_callback)
+        self.timer = None
+        self._configure_timer()
+        self.env.reset(seed=self._param('seed'))
+        self.get_logger().info(
+            f'{family}: {self.spec.param_name}={self.env.param_value:g}, '
+            f'mode={self._param("mode")}, control period {self.env.control_timestep:g} s')
+        self.publish_state(reward=0.0, truncated=False)
+
+    # -- parameters -----------------------------------------------------------
+    def _param(self, name: str):
+        return self.get_parameter(name).value
+
+    def validate_parameters_callback(self, params: list[Parameter]) -> SetParametersResult:
+        for param in params:
+            reason = self._parameter_problem(param)
+            if reason is not None:
+                return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    def _parameter_problem(self, param: Parameter) -> str | None:
+        if param.name == self.spec.param_name:
+            if param.type_ not in (Parameter.Type.DOUBLE, Parameter.Type.INTEGER):
+                return f'{param.name} must be a number, got {param.type_.name}'
+            return self.spec.check_value(param.value)
+        if param.name == 'mode' and param.value not in MODES:
+            return f'mode must be one of {MODES}, got {param.value!r}'
+        return None
+
+    def apply_parameters_callback(self, params: list[Parameter]) -> None:
+        for param in params:
+            if param.name == self.spec.param_name:
+                self.pending_value = float(param.value)
+            elif param.name in ('mode', 'real_time_factor', 'command_timeout'):
+                self._configure_timer()
+
+    def _configure_timer(self) -> None:
+        if self.timer is not None:
+            self.destroy_timer(self.timer)
+        if self._param('mode') == 'realtime':
+            period = self.env.control_timestep / self._param('real_time_factor')
+            self.timer = self.create_timer(period, self.realtime_tick_callback)
+        else:
+            period = min(0.05, self._param('command_timeout') / 4)
+            self.timer = self.create_timer(period, self.lockstep_watchdog_callback)
+
+    # -- stepping -------------------------------------------------------------
+    def command_callback(self, msg: JointState) -> None:
+        action, reason = parse_command(msg.name, msg.effort, self.env.actuator_names)
+        if reason is not None:
+            self.counters['rejected'] += 1
+            self._warn('rejected', f'rejected command ({reason}); applying zero action '
+                                   f'[{self.counters["rejected"]} rejected so far]')
+            action = np.zeros(self.env.action_dim)
+        if self._param('mode') == 'realtime':
+            self.latest_action, self.latest_action_time = action, time.monotonic()
+            return
+        if stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) != self.awaited_ns:
+            self.counters['stale'] += 1
+            return
+        self.advance(action)
+
+    def lockstep_watchdog_callback(self) -> None:
+        if self._param('mode') != 'lockstep' or self.awaited_ns is None:
+            return
+        if time.monotonic() - self.awaited_since > self._param('command_timeout'):
+            self.counters['timeouts'] += 1
+            self._warn('timeout', f'no command within {self._param("command_timeout")} s; '
+                                  'applying zero action')
+            self.advance(np.zeros(self.env.action_dim))
+
+    def realtime_tick_callback(self) -> None:
+        fresh = time.monotonic() - self.latest_action_time <= self._param('command_timeout')
+        self.advance(self.latest_action if fresh else np.zeros(self.env.action_dim))
+
+    def advance(self, action: np.ndarray) -> None:
+        """Apply a pending swap, step once, publish; reset at the episode's end."""
+        self._apply_pending_swap()
+        result = self.env.step(action)
+        if result.instability is not None:
+            self.counters['instabilities'] += 1
+            self.get_logger().warning(f'MuJoCo instability ({result.instability}); '
+                                      'episode reset')
+            self._start_episode(seed=None)
+            return
+        self.publish_state(result.reward, result.truncated, result.terminal)
+        if result.truncated or result.terminal:
+            self._start_episode(seed=None)
+
+    def _apply_pending_swap(self) -> None:
+        if self.pending_value is not None and self.pending_value != self.env.param_value:
+            old = self.env.param_value
+            self.env.set_param(self.pending_value)
+            self.get_logger().info(
+                f'{self.spec.param_name}: {old:g} -> {self.env.param_value:g} '
+                f'at episode {self.episode} step {self.env.step_count}')
+        self.pending_value = None
+
+    def _start_episode(self, seed: int | None) -> None:
+        self.episode += 1
+        self.env.reset(seed=seed)
+        self.publish_state(reward=0.0, truncated=False)
+
+    def publish_state(self, reward: float, truncated: bool, terminal: bool = False) -> None:
+        self.tick += 1
+        stamp_ns = self.tick * self.dt_ns
+        sec, nanosec = ns_to_stamp(stamp_ns)
+        joint_state = JointState(name=list(self.env.joint_names),
+                                 position=self.env.joint_positions().tolist(),
+                                 velocity=self.env.joint_velocities().tolist())
+        joint_state.header.stamp.sec, joint_state.header.stamp.nanosec = sec, nanosec
+        step = StepInfo(episode=self.episode, step=self.env.step_count, reward=float(reward),
+                        terminal=bool(terminal), truncated=bool(truncated),
+                        family=self.spec.name, param_names=[self.spec.param_name],
+                        param_values=[self.env.param_value])
+        step.header = joint_state.header
+        clock = Clock()
+        clock.clock = joint_state.header.stamp
+        self.clock_pub.publish(clock)
+        self.step_pub.publish(step)
+        self.joint_pub.publish(joint_state)
+        ends_episode = truncated or terminal
+        self.awaited_ns = None if ends_episode else stamp_ns
+        self.awaited_since = time.monotonic()
+
+    # -- service ----------------------------------------------------------------
+    def reset_callback(self, request: Reset.Request, response: Reset.Response):
+        names, values = list(request.param_names), list(request.param_values)
+        problem = self._reset_problem(names, values)
+        if problem is not None:
+            response.success, response.message = False, problem
+            return response
+        if names:
+            result = self.set_parameters([Parameter(n, value=float(v))
+                                          for n, v in zip(names, values, strict=True)])[0]
+            if not result.successful:
+                response.success, response.message = False, result.reason
+                return response
+            self._apply_pending_swap()
+        seed = None if request.seed < 0 else int(request.seed)
+        self._start_episode(seed)
+        response.success = True
+        response.message = (f'episode {self.episode}: seed={request.seed}, '
+                            f'{self.spec.param_name}={self.env.param_value:g}')
+        return response
+
+    def _reset_problem(self, names: list[str], values: list[float]) -> str | None:
+        if len(names) != len(values):
+            return f'{len(names)} parameter names but {len(values)} values'
+        for name, value in zip(names, values, strict=True):
+            if name != self.spec.param_name:
+                return f'unknown parameter {name!r}; this family has {self.spec.param_name!r}'
+            reason = self.spec.check_value(value)
+            if reason is not None:
+                return reason
+        return None
+
+    def diagnostics_callback(self) -> None:
+        problems = self.counters['rejected'] + self.counters['instabilities']
+        values = dict(self.counters, episode=self.episode, step=self.env.step_count,
+                      mode=self._param('mode'), **{self.spec.param_name: self.env.param_value})
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
+            name=f'{self.get_name()}: simulation', hardware_id=self.spec.name,
+            message='bad commands or instabilities seen' if problems else 'ok',
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
+
+    def _warn(self, key: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._last_warn.get(key, -np.inf) >= WARN_PERIOD_S:
+            self._last_warn[key] = now
+            self.get_logger().warning(text)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:  # a bad family or initial parameter: say which, exit 1
+        print(f'sim_node: {error}', file=sys.stderr)
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

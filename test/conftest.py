@@ -1,0 +1,126 @@
+"""Shared fixtures: an isolated DDS domain on loopback, node processes, rclpy helpers."""
+
+import fcntl
+import os
+from pathlib import Path
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+INSTALL_BIN = REPO / 'install' / 'zeus_ros' / 'lib' / 'zeus_ros'
+HELPERS = Path(__file__).resolve().parent / 'helpers'
+
+# Discovery stays on this machine, and the suite talks on a domain of its own:
+# a lock file per domain id keeps two runs on one machine from hearing each other.
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+_DOMAIN_LOCK = None
+
+
+def _claim_domain_id() -> int:
+    global _DOMAIN_LOCK
+    candidates = list(range(20, 100))
+    random.Random(os.getpid()).shuffle(candidates)
+    for domain_id in candidates:
+        handle = open(f'/tmp/zeus_ros_test_domain_{domain_id}.lock', 'w')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _DOMAIN_LOCK = handle
+        return domain_id
+    raise RuntimeError('no free ROS_DOMAIN_ID for the test suite')
+
+
+os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
+
+
+class NodeProcess:
+    """A node (or any command) in its own process, its output kept in a log file."""
+
+    def __init__(self, argv, log_path: Path, env=None):
+        self.argv = [str(a) for a in argv]
+        self.log_path = log_path
+        self._log = open(log_path, 'w')
+        self.proc = subprocess.Popen(
+            self.argv, stdout=self._log, stderr=subprocess.STDOUT,
+            env=env or os.environ.copy(), start_new_session=True)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def output(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text()
+
+    def stop(self, timeout: float = 10.0) -> int:
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+
+@pytest.fixture
+def spawn(tmp_path):
+    """Start processes that are stopped (SIGINT, then SIGKILL) after the test."""
+    started = []
+
+    def _spawn(argv, name='proc'):
+        proc = NodeProcess(argv, tmp_path / f'{name}_{len(started)}.log')
+        started.append(proc)
+        return proc
+
+    yield _spawn
+    for proc in started:
+        proc.stop()
+
+
+def installed_exe(name: str) -> Path:
+    """Path of an executable as `ros2 run zeus_ros <name>` would find it."""
+    path = INSTALL_BIN / name
+    if not path.exists():
+        raise FileNotFoundError(f'{path} is missing: run `make setup` (colcon build) first')
+    return path
+
+
+def helper_script(name: str) -> list:
+    return [sys.executable, str(HELPERS / name)]
+
+
+@pytest.fixture(scope='session')
+def rclpy_context():
+    import rclpy
+    rclpy.init()
+    yield
+    rclpy.shutdown()
+
+
+@pytest.fixture
+def ros_node(rclpy_context, request):
+    import rclpy
+    name = 'test_' + ''.join(c if c.isalnum() else '_' for c in request.node.name)[:50]
+    node = rclpy.create_node(name)
+    yield node
+    node.destroy_node()
+
+
+def spin_until(node, predicate, timeout: float, period: float = 0.02):
+    """Spin `node` until `predicate()` is truthy; return its last value."""
+    import rclpy
+    deadline = time.monotonic() + timeout
+    value = predicate()
+    while not value and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=period)
+        value = predicate()
+    return value

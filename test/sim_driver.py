@@ -1,0 +1,97 @@
+"""Drive a running sim_node in lockstep from the test process, over real DDS."""
+
+from __future__ import annotations
+
+from conftest import spin_until
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from zeus_msgs.msg import StepInfo
+from zeus_msgs.srv import Reset
+
+QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def stamp_key(header) -> int:
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+class LockstepDriver:
+    """Answers each published state with a command, like a policy would."""
+
+    def __init__(self, node, sim_name: str = 'sim_node', timeout: float = 30.0):
+        self.node, self.timeout = node, timeout
+        self.states: dict[int, JointState] = {}
+        self.steps: dict[int, StepInfo] = {}
+        node.create_subscription(JointState, '/joint_states', self._on_state, QOS)
+        node.create_subscription(StepInfo, '/zeus/step', self._on_step, QOS)
+        self.command_pub = node.create_publisher(JointState, '/joint_commands', QOS)
+        self.reset_client = node.create_client(Reset, f'/{sim_name}/reset')
+        self.param_client = node.create_client(SetParameters, f'/{sim_name}/set_parameters')
+        self.current: int | None = None
+
+    def _on_state(self, msg):
+        self.states[stamp_key(msg.header)] = msg
+
+    def _on_step(self, msg):
+        self.steps[stamp_key(msg.header)] = msg
+
+    def wait_ready(self):
+        ready = spin_until(self.node, lambda: (
+            self.reset_client.service_is_ready() and self.param_client.service_is_ready()
+            and self.command_pub.get_subscription_count() > 0
+            and self.node.count_publishers('/joint_states') > 0
+            and self.node.count_publishers('/zeus/step') > 0), self.timeout)
+        assert ready, 'sim_node did not come up on the graph'
+
+    def _call(self, client, request):
+        future = client.call_async(request)
+        assert spin_until(self.node, future.done, self.timeout), 'service call timed out'
+        return future.result()
+
+    def _pair(self, key):
+        return self.states.get(key), self.steps.get(key)
+
+    def _wait_for(self, match) -> int:
+        found = []
+
+        def check():
+            for key, info in self.steps.items():
+                if key in self.states and match(info):
+                    found.append(key)
+                    return True
+            return False
+        assert spin_until(self.node, check, self.timeout), 'expected state never arrived'
+        return found[0]
+
+    def reset(self, seed: int, params: dict | None = None):
+        params = params or {}
+        self.states.clear()
+        self.steps.clear()
+        response = self._call(self.reset_client, Reset.Request(
+            seed=seed, param_names=list(params), param_values=[float(v) for v in
+                                                                params.values()]))
+        assert response.success, response.message
+        episode = int(response.message.split(':')[0].split()[1])
+        self.current = self._wait_for(lambda i: i.episode == episode and i.step == 0)
+        return self._pair(self.current)
+
+    def set_param(self, name: str, value):
+        request = SetParameters.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg()])
+        return self._call(self.param_client, request).results[0]
+
+    def command(self, action, names, stamp_of=None, efforts=None):
+        msg = JointState(name=list(names),
+                         effort=[float(a) for a in (action if efforts is None else efforts)])
+        msg.header = (stamp_of if stamp_of is not None else self.states[self.current]).header
+        self.command_pub.publish(msg)
+
+    def step(self, action, names):
+        info = self.steps[self.current]
+        self.command(action, names)
+        self.current = self._wait_for(
+            lambda i: (i.episode == info.episode and i.step == info.step + 1)
+            or i.episode == info.episode + 1)
+        return self._pair(self.current)

@@ -1,0 +1,108 @@
+"""Simulation core without ROS: families really differ, swaps keep the state."""
+
+import numpy as np
+import pytest
+from sim_node.env import check_action, ParamEnv
+from sim_node.families import FAMILIES, get_family
+from sim_node.protocol import parse_command
+
+
+def rollout(family, value, seed=4, steps=150):
+    env = ParamEnv(family, value, seed=seed)
+    env.reset(seed=seed)
+    actions = np.random.RandomState(0).uniform(-1, 1, (steps, env.action_dim))
+    observations, rewards = [], []
+    for action in actions:
+        result = env.step(action)
+        observations.append(result.observation)
+        rewards.append(result.reward)
+    return np.array(observations), np.array(rewards)
+
+
+@pytest.mark.parametrize('family', list(FAMILIES))
+def test_parameter_values_give_different_tasks(family):
+    spec = get_family(family)
+    low, high = min(spec.train), max(spec.train)
+    obs_low, rew_low = rollout(family, low)
+    obs_high, rew_high = rollout(family, high)
+    if spec.reward_varies_only:
+        np.testing.assert_array_equal(obs_low, obs_high)  # same dynamics...
+        assert np.abs(rew_low - rew_high).max() > 0.1     # ...different reward
+    else:
+        assert np.abs(obs_low - obs_high).max() > 1e-3
+
+
+@pytest.mark.parametrize('family', list(FAMILIES))
+def test_same_seed_same_trajectory(family):
+    obs_a, rew_a = rollout(family, None)
+    obs_b, rew_b = rollout(family, None)
+    np.testing.assert_array_equal(obs_a, obs_b)
+    np.testing.assert_array_equal(rew_a, rew_b)
+
+
+def test_tables_as_printed():
+    assert get_family('cheetah-run-v0').train[-3:] == (1.25, 1.4, 1.5)
+    assert set(get_family('cheetah-run-v0').extrapolation) & {1.25, 1.4, 1.5}
+    assert get_family('walker-walk-v0').interpolation == (1.0, 1.05, 1.1, 1.15)
+    for spec in FAMILIES.values():
+        lo, hi = spec.live_range
+        values = spec.train + spec.interpolation + spec.extrapolation
+        assert lo < min(values) and max(values) < hi
+
+
+def test_walker_friction_reaches_every_contact():
+    env = ParamEnv('walker-walk-v0', 0.3)
+    friction = env.physics.model.geom_friction[:, 0]
+    np.testing.assert_allclose(friction, 0.3)
+
+
+def test_foot_length_changes_both_feet():
+    model = ParamEnv('walker-walk-v1', 0.15).physics.model
+    for foot in ('right_foot', 'left_foot'):
+        assert model.geom(foot).size[1] == pytest.approx(0.15)
+
+
+def test_cheetah_torso_keeps_total_mass():
+    short = ParamEnv('cheetah-run-v0', 0.6).physics.model
+    long = ParamEnv('cheetah-run-v0', 1.5).physics.model
+    assert short.body_mass.sum() == pytest.approx(14.0)
+    assert long.body_mass.sum() == pytest.approx(14.0)
+    assert long.body('torso').mass > short.body('torso').mass
+
+
+def test_live_swap_keeps_state_and_changes_physics():
+    env = ParamEnv('walker-walk-v0', 1.0, seed=2)
+    env.reset(seed=2)
+    for _ in range(40):
+        env.step(np.full(6, 0.3))
+    qpos, qvel, t = env.joint_positions(), env.joint_velocities(), env.time
+    env.set_param(0.4)
+    np.testing.assert_array_equal(env.joint_positions(), qpos)
+    np.testing.assert_array_equal(env.joint_velocities(), qvel)
+    assert env.time == t and env.param_value == 0.4
+    assert env.physics.model.geom_friction[0, 0] == pytest.approx(0.4)
+
+
+def test_bad_values_and_actions_are_refused():
+    with pytest.raises(ValueError, match='outside the allowed range'):
+        ParamEnv('walker-walk-v0', 10.0)
+    env = ParamEnv('walker-walk-v0')
+    for value in (float('nan'), -1.0):
+        with pytest.raises(ValueError):
+            env.set_param(value)
+    assert env.param_value == get_family('walker-walk-v0').default
+    assert check_action([np.nan] * 6, 6)[0] is None
+    assert check_action([1.0] * 5, 6)[1] == 'action has 5 values, expected 6'
+    assert check_action([3.0, -3.0, 0, 0, 0, 0], 6)[0].tolist() == [1, -1, 0, 0, 0, 0]
+    with pytest.raises(ValueError, match='NaN'):
+        env.step([np.inf] * 6)
+
+
+def test_parse_command_reorders_and_rejects():
+    names = ('a', 'b')
+    action, reason = parse_command(['b', 'a'], [0.5, -0.5], names)
+    assert reason is None and action.tolist() == [-0.5, 0.5]
+    assert parse_command(['a', 'c'], [0, 0], names)[0] is None
+    assert parse_command(['a', 'b'], [0], names)[0] is None
+    assert parse_command(['a', 'a'], [0, 0], names)[0] is None
+    assert parse_command(['a', 'b'], [0, float('nan')], names)[0] is None

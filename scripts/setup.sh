@@ -35,6 +35,7 @@ grep -rlZ --include='*.cmake' '/opt/python/cp311-cp311' "$venv/share" 2>/dev/nul
 # The venv's share/ holds many package.xml files; keep colcon out of it.
 touch "$venv/COLCON_IGNORE"
 
+mkdir -p "$root/log"
 echo "[setup] colcon build (zeus_msgs, zeus_ros)"
 "$venv/bin/colcon" --log-base "$root/log" build \
   --base-paths "$root" "$root/msg_defs" \

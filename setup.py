@@ -25,6 +25,9 @@ setup(
     entry_points={
         'console_scripts': [
             'sim_node = sim_node.node:main',
+            'context_node = zeus_ros.context_node:main',
+            'policy_node = zeus_ros.policy_node:main',
+            'bringup = zeus_ros.bringup:main',
         ],
     },
 )

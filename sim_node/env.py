@@ -144,6 +144,8 @@ class StepResult:
     reward: float
     terminal: bool
     truncated: bool
+    # The action MuJoCo applied (validated, clipped to [-1, 1]).
+    applied_action: np.ndarray | None = None
     # Set when MuJoCo became unstable: the episode was reset, and the
     # observation is the new episode's first one.
     instability: str | None = None
@@ -261,10 +263,11 @@ class ParamEnv:
                 raise control.PhysicsError('non-finite state or reward')
         except control.PhysicsError as error:
             self._reset_physics()
-            return StepResult(self.observation(), 0.0, False, True, instability=str(error))
+            return StepResult(self.observation(), 0.0, False, True, applied_action=clean,
+                              instability=str(error))
         self.step_count += 1
         truncated = self.step_count >= self.episode_steps
-        return StepResult(observation, reward, False, truncated)
+        return StepResult(observation, reward, False, truncated, applied_action=clean)
 
     def set_param(self, value: float) -> None:
         """Put a new parameter value into force, keeping the simulator state."""

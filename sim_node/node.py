@@ -14,14 +14,12 @@ import sys
 import time
 
 import numpy as np
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, SetParametersResult
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import StepInfo
@@ -30,16 +28,10 @@ from zeus_msgs.srv import Reset
 from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
 from sim_node.protocol import ns_to_stamp, parse_command, stamp_to_ns
+from zeus_ros.ros_util import describe as _describe
+from zeus_ros.ros_util import diagnostic_array, LOOP_QOS as STATE_QOS, RateMeter, ThrottledWarnings
 
 MODES = ('lockstep', 'realtime')
-# Reliable, shallow queues: lockstep must not lose a state or a command, and a
-# depth of 10 bounds the backlog a slow subscriber can build up.
-STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-WARN_PERIOD_S = 2.0
-
-
-def _describe(text: str, read_only: bool = False, **ranges) -> ParameterDescriptor:
-    return ParameterDescriptor(description=text, read_only=read_only, **ranges)
 
 
 class SimNode(Node):
@@ -80,7 +72,8 @@ class SimNode(Node):
         self.latest_action = np.zeros(self.env.action_dim)
         self.latest_action_time = -np.inf
         self.counters = {'rejected': 0, 'stale': 0, 'timeouts': 0, 'instabilities': 0}
-        self._last_warn: dict[str, float] = {}
+        self.warnings = ThrottledWarnings(self.get_logger())
+        self.step_rate = RateMeter()  # steps/s; latency = state published -> command in
 
         self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
         self.step_pub = self.create_publisher(StepInfo, '/zeus/step', STATE_QOS)
@@ -140,7 +133,7 @@ class SimNode(Node):
         action, reason = parse_command(msg.name, msg.effort, self.env.actuator_names)
         if reason is not None:
             self.counters['rejected'] += 1
-            self._warn('rejected', f'rejected command ({reason}); applying zero action '
+            self.warnings.warn('rejected', f'rejected command ({reason}); applying zero action '
                                    f'[{self.counters["rejected"]} rejected so far]')
             action = np.zeros(self.env.action_dim)
         if self._param('mode') == 'realtime':
@@ -149,6 +142,7 @@ class SimNode(Node):
         if stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) != self.awaited_ns:
             self.counters['stale'] += 1
             return
+        self.step_rate.record(time.monotonic() - self.awaited_since)
         self.advance(action)
 
     def lockstep_watchdog_callback(self) -> None:
@@ -156,7 +150,7 @@ class SimNode(Node):
             return
         if time.monotonic() - self.awaited_since > self._param('command_timeout'):
             self.counters['timeouts'] += 1
-            self._warn('timeout', f'no command within {self._param("command_timeout")} s; '
+            self.warnings.warn('timeout', f'no command within {self._param("command_timeout")} s; '
                                   'applying zero action')
             self.advance(np.zeros(self.env.action_dim))
 
@@ -174,7 +168,8 @@ class SimNode(Node):
                                       'episode reset')
             self._start_episode(seed=None)
             return
-        self.publish_state(result.reward, result.truncated, result.terminal)
+        self.publish_state(result.reward, result.truncated, result.terminal,
+                           applied_action=result.applied_action)
         if result.truncated or result.terminal:
             self._start_episode(seed=None)
 
@@ -192,7 +187,8 @@ class SimNode(Node):
         self.env.reset(seed=seed)
         self.publish_state(reward=0.0, truncated=False)
 
-    def publish_state(self, reward: float, truncated: bool, terminal: bool = False) -> None:
+    def publish_state(self, reward: float, truncated: bool, terminal: bool = False,
+                      applied_action: np.ndarray | None = None) -> None:
         self.tick += 1
         stamp_ns = self.tick * self.dt_ns
         sec, nanosec = ns_to_stamp(stamp_ns)
@@ -202,6 +198,8 @@ class SimNode(Node):
         joint_state.header.stamp.sec, joint_state.header.stamp.nanosec = sec, nanosec
         step = StepInfo(episode=self.episode, step=self.env.step_count, reward=float(reward),
                         terminal=bool(terminal), truncated=bool(truncated),
+                        applied_action=[] if applied_action is None
+                        else applied_action.tolist(),
                         family=self.spec.name, param_names=[self.spec.param_name],
                         param_values=[self.env.param_value])
         step.header = joint_state.header
@@ -249,21 +247,11 @@ class SimNode(Node):
     def diagnostics_callback(self) -> None:
         problems = self.counters['rejected'] + self.counters['instabilities']
         values = dict(self.counters, episode=self.episode, step=self.env.step_count,
-                      mode=self._param('mode'), **{self.spec.param_name: self.env.param_value})
-        status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
-            name=f'{self.get_name()}: simulation', hardware_id=self.spec.name,
-            message='bad commands or instabilities seen' if problems else 'ok',
-            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics_pub.publish(array)
-
-    def _warn(self, key: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last_warn.get(key, -np.inf) >= WARN_PERIOD_S:
-            self._last_warn[key] = now
-            self.get_logger().warning(text)
+                      mode=self._param('mode'), **{self.spec.param_name: self.env.param_value},
+                      **self.step_rate.report())
+        self.diagnostics_pub.publish(diagnostic_array(
+            self, 'simulation', self.spec.name, values,
+            'bad commands or instabilities seen' if problems else None))
 
 
 def main(args=None):

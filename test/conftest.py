@@ -108,19 +108,24 @@ def rclpy_context():
 
 @pytest.fixture
 def ros_node(rclpy_context, request):
+    from rclpy.executors import SingleThreadedExecutor
     import rclpy
     name = 'test_' + ''.join(c if c.isalnum() else '_' for c in request.node.name)[:50]
     node = rclpy.create_node(name)
+    # One executor for the node's life: rclpy.spin_once(node) would build a new
+    # one per call, too slow to keep up with a loop running at hundreds of Hz.
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
     yield node
+    executor.shutdown()
     node.destroy_node()
 
 
 def spin_until(node, predicate, timeout: float, period: float = 0.02):
     """Spin `node` until `predicate()` is truthy; return its last value."""
-    import rclpy
     deadline = time.monotonic() + timeout
     value = predicate()
     while not value and time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=period)
+        node.executor.spin_once(timeout_sec=period)
         value = predicate()
     return value

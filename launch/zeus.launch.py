@@ -1,0 +1,45 @@
+"""Start sim_node, context_node and policy_node with a family, a checkpoint and a mode.
+
+Usage: ros2 launch zeus_ros zeus.launch.py weights:=<checkpoint> family:=walker-walk-v0
+mode:=lockstep
+"""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, EmitEvent, RegisterEventHandler
+from launch.event_handlers import OnProcessExit
+from launch.events import Shutdown
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+
+def generate_launch_description():
+    config = os.path.join(get_package_share_directory('zeus_ros'), 'config', 'zeus.yaml')
+    family = LaunchConfiguration('family')
+    weights = LaunchConfiguration('weights')
+    mode = LaunchConfiguration('mode')
+    nodes = [
+        Node(package='zeus_ros', executable='sim_node', name='sim_node', output='screen',
+             parameters=[config, {'family': family, 'mode': mode}]),
+        Node(package='zeus_ros', executable='context_node', name='context_node',
+             output='screen', parameters=[config, {'weights': weights}]),
+        Node(package='zeus_ros', executable='policy_node', name='policy_node',
+             output='screen', parameters=[config, {'weights': weights}]),
+    ]
+    # Like bringup: when one node ends, the whole launch ends.
+    shutdown_on_exit = [
+        RegisterEventHandler(OnProcessExit(target_action=node,
+                                           on_exit=[EmitEvent(event=Shutdown())]))
+        for node in nodes
+    ]
+    return LaunchDescription([
+        DeclareLaunchArgument('family', default_value='walker-walk-v0',
+                              description='environment family the weights were trained on'),
+        DeclareLaunchArgument('weights', description='checkpoint directory'),
+        DeclareLaunchArgument('mode', default_value='lockstep',
+                              description='lockstep or realtime'),
+        *nodes,
+        *shutdown_on_exit,
+    ])

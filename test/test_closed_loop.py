@@ -1,0 +1,131 @@
+"""The three nodes on real DDS are the trained agent: equal returns, faults survived."""
+
+import subprocess
+import sys
+
+from conftest import installed_exe, REPO, spin_until
+import numpy as np
+import pytest
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sim_driver import LockstepDriver
+from zeus_msgs.msg import Context, StepInfo
+from zeus_ros.evaluate import run_episode
+from zeus_ros.core.inference import InferenceModel
+
+FAMILY = 'walker-walk-v0'
+QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture(scope='session')
+def small_checkpoint(tmp_path_factory):
+    """Train a small checkpoint for the suite: a few hundred real training steps."""
+    out = tmp_path_factory.mktemp('train') / 'run'
+    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
+                    '--steps', '300', '--out', str(out), '--eval-every', '0',
+                    '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
+    return out / 'checkpoint'
+
+
+@pytest.fixture
+def loop(spawn, ros_node, small_checkpoint):
+    def start(nodes=('sim_node', 'context_node', 'policy_node'), **sim_params):
+        procs = {}
+        params = {'sim_node': {'family': FAMILY, 'command_timeout': 0.3, **sim_params},
+                  'context_node': {'weights': small_checkpoint},
+                  'policy_node': {'weights': small_checkpoint, 'context_timeout': 5.0}}
+        for name in nodes:
+            procs[name] = start_node(spawn, name, params[name])
+        driver = LockstepDriver(ros_node)
+        driver.wait_ready()
+        return procs, driver
+    return start
+
+
+def start_node(spawn, name, params):
+    argv = [installed_exe(name), '--ros-args']
+    for key, value in params.items():
+        argv += ['-p', f'{key}:={value}']
+    return spawn(argv, name)
+
+
+def collect(ros_node, msg_type, topic):
+    received = []
+    ros_node.create_subscription(msg_type, topic, received.append, QOS)
+    return received
+
+
+def wait_loop_running(ros_node, steps, timeout=60.0):
+    """Wait until the policy's actions reach the sim: every node has discovered the others."""
+    assert spin_until(ros_node, lambda: any(any(s.applied_action) for s in steps[-3:]),
+                      timeout), 'the loop never closed (no non-zero action applied)'
+
+
+def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpoint):
+    seed, friction = 5, 1.25
+    expected = run_episode(InferenceModel.load(small_checkpoint), FAMILY, friction, seed)
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    _, driver = loop()
+    wait_loop_running(ros_node, steps)
+    driver.reset(seed=seed, params={'friction': friction})
+    episode = driver.steps[driver.current].episode
+
+    def finished():
+        return any(s.episode == episode and s.truncated for s in steps)
+    assert spin_until(ros_node, finished, 120.0), 'the episode did not finish through ROS'
+    rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
+    assert len(rewards) == 1000
+    assert abs(sum(rewards) - expected.episode_return) <= 1e-9
+    np.testing.assert_array_equal(rewards, expected.rewards)
+
+
+def test_policy_killed_then_restarted(loop, ros_node, spawn, small_checkpoint):
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    procs, driver = loop()
+    wait_loop_running(ros_node, steps)
+    driver.reset(seed=1)
+    assert spin_until(ros_node, lambda: len(steps) > 50, 30.0)
+    procs['policy_node'].stop()
+    mark = len(steps)
+    # Without a policy the sim times out (0.3 s) and applies zero actions, still stepping.
+    assert spin_until(ros_node, lambda: len(steps) > mark + 5, 30.0), 'the sim stopped'
+    assert all(not any(s.applied_action) for s in steps[mark + 2:])
+    start_node(spawn, 'policy_node', {'weights': small_checkpoint})
+    mark = len(steps)
+    assert spin_until(ros_node, lambda: any(any(s.applied_action) for s in steps[mark:]),
+                      60.0), 'control did not resume after the policy restarted'
+
+
+def test_context_node_restart_refills_the_window(loop, ros_node, spawn, small_checkpoint):
+    contexts = collect(ros_node, Context, '/zeus/context')
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    procs, driver = loop()
+    wait_loop_running(ros_node, steps)
+    driver.reset(seed=2)
+    assert spin_until(ros_node, lambda: len(contexts) > 20, 30.0)
+    assert contexts[-1].window_fill == 5
+    procs['context_node'].stop()
+    spin_until(ros_node, lambda: False, 1.0)  # take in what the old node had sent
+    mark = len(contexts)
+    start_node(spawn, 'context_node', {'weights': small_checkpoint})
+    assert spin_until(ros_node, lambda: len(contexts) > mark + 10, 60.0), \
+        'contexts did not resume'
+    fills = [c.window_fill for c in contexts[mark:]]
+    assert fills[0] == 0 and fills[1:5] == [1, 2, 3, 4] and fills[-1] == 5
+
+
+def test_mismatched_or_missing_weights_stop_the_node(spawn, small_checkpoint):
+    for params, message in (({'weights': '/nonexistent/ckpt'}, '/nonexistent/ckpt'),
+                            ({}, 'weights')):
+        proc = start_node(spawn, 'context_node', params)
+        assert proc.proc.wait(30) == 1
+        assert message in proc.output()
+
+
+def test_context_node_refuses_a_sim_of_another_family(loop, spawn, small_checkpoint):
+    loop(nodes=('sim_node',), family='cheetah-run-v0')
+    proc = start_node(spawn, 'context_node', {'weights': small_checkpoint})
+    assert proc.proc.wait(30) == 1
+    # Whichever message arrives first, StepInfo (family) or JointState (joints):
+    assert ("the sim runs 'cheetah-run-v0' but the weights are for 'walker-walk-v0'"
+            in proc.output()) or ('do not fit the walker-walk-v0 weights: joint state lacks'
+                                  in proc.output())

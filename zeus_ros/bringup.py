@@ -1,0 +1,111 @@
+"""bringup: start sim_node, context_node and policy_node without ROS launch.
+
+Each node runs in its own process; Ctrl-C (or SIGTERM) stops all three
+cleanly, and if any node exits the others are stopped and bringup exits with
+that node's code. The family defaults to the one the weights were trained for.
+
+    ros2 run zeus_ros bringup --weights weights/walker-walk-v0-zeus --mode lockstep
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+NODES = (('sim_node', 'sim_node.node'), ('context_node', 'zeus_ros.context_node'),
+         ('policy_node', 'zeus_ros.policy_node'))
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--weights', required=True, help='checkpoint directory')
+    parser.add_argument('--family', help="environment family (default: the weights')")
+    parser.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep')
+    parser.add_argument('--seed', type=int, default=0, help='sim seed')
+    parser.add_argument('--param', type=float, help='initial value of the physical parameter')
+    parser.add_argument('--real-time-factor', type=float, default=1.0)
+    parser.add_argument('--command-timeout', type=float, default=0.5)
+    parser.add_argument('--context-timeout', type=float, default=0.5)
+    parser.add_argument('--log-level', default='info')
+    return parser.parse_args(argv)
+
+
+def node_commands(args: argparse.Namespace) -> dict[str, list[str]]:
+    """Build each node's command line (python -m, so no install layout is assumed)."""
+    weights = str(Path(args.weights).resolve())
+    family = args.family
+    if family is None:
+        family = json.loads((Path(weights) / 'metadata.json').read_text())['family']
+    sim_params = {'family': family, 'mode': args.mode, 'seed': args.seed,
+                  'real_time_factor': args.real_time_factor,
+                  'command_timeout': args.command_timeout}
+    if args.param is not None:
+        from sim_node.families import get_family
+        sim_params[get_family(family).param_name] = args.param
+    params = {'sim_node': sim_params, 'context_node': {'weights': weights},
+              'policy_node': {'weights': weights, 'context_timeout': args.context_timeout}}
+    commands = {}
+    for name, module in NODES:
+        argv = [sys.executable, '-m', module, '--ros-args', '--log-level', args.log_level]
+        for key, value in params[name].items():
+            argv += ['-p', f'{key}:={value}']
+        commands[name] = argv
+    return commands
+
+
+class Bringup:
+    """The three node processes and their shared fate."""
+
+    def __init__(self, commands: dict[str, list[str]]):
+        env = dict(os.environ)
+        env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+        self.procs = {name: subprocess.Popen(cmd, env=env) for name, cmd in commands.items()}
+
+    def failed(self) -> tuple[str, int] | None:
+        for name, proc in self.procs.items():
+            if proc.poll() is not None:
+                return name, proc.returncode
+        return None
+
+    def stop(self, timeout: float = 10.0) -> None:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + timeout
+        for proc in self.procs.values():
+            try:
+                proc.wait(max(deadline - time.monotonic(), 0.1))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    bringup = Bringup(node_commands(args))
+    stop_requested = []
+    signal.signal(signal.SIGTERM, lambda *_: stop_requested.append(True))
+    try:
+        while not stop_requested:
+            failure = bringup.failed()
+            if failure is not None:
+                name, code = failure
+                print(f'bringup: {name} exited with code {code}; stopping the others',
+                      file=sys.stderr)
+                return code or 1
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        bringup.stop()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

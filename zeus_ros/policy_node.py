@@ -1,0 +1,136 @@
+"""policy_node: publishes the trained policy's action for each state and its context.
+
+Subscribes /joint_states and /zeus/context; when the state and the context of
+one stamp are both in, publishes the deterministic (mean) action on
+/joint_commands with that stamp and the actuator names. It answers the newest
+complete pair (in realtime mode older states are skipped); a state whose
+context has not come within `context_timeout` gets a zero action and a warning.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+import numpy as np
+from rcl_interfaces.msg import FloatingPointRange
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from zeus_msgs.msg import Context
+
+from zeus_ros.checkpoint import CheckpointError
+from zeus_ros.context_node import GraphMismatch, run_node
+from zeus_ros.core.inference import InferenceModel
+from zeus_ros.pairing import layout_from_metadata, StateContextPairer
+from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, stamp_ns,
+                               ThrottledWarnings)
+
+
+class PolicyNode(Node):
+    """Thin ROS shell around `StateContextPairer` and the checkpoint's actor."""
+
+    def __init__(self):
+        super().__init__('policy_node')
+        weights = self.declare_parameter('weights', '', describe(
+            'Checkpoint directory (safetensors + metadata.json); read-only.',
+            read_only=True)).value
+        timeout = self.declare_parameter('context_timeout', 0.5, describe(
+            'Seconds a state waits for its context before a zero action is sent.',
+            floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)])).value
+        if not weights:
+            raise CheckpointError('parameter "weights" is empty: pass -p weights:=<checkpoint>')
+        self.model = InferenceModel.load(weights)
+        self.layout = layout_from_metadata(self.model.metadata)
+        self.actuator_names = list(self.model.metadata['action_layout']['actuator_names'])
+        self.zero_action = np.zeros(self.model.action_dim)
+        self.pairer = StateContextPairer(timeout)
+        self.received_at: dict[int, float] = {}
+        self.counters = {'zero_actions': 0, 'non_finite_actions': 0, 'bad_contexts': 0}
+        self.action_rate = RateMeter()   # latency: state received -> command published
+        self.warnings = ThrottledWarnings(self.get_logger())
+
+        self.command_pub = self.create_publisher(JointState, '/joint_commands', LOOP_QOS)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(JointState, '/joint_states', self.joint_state_callback,
+                                 LOOP_QOS)
+        self.create_subscription(Context, '/zeus/context', self.context_callback, LOOP_QOS)
+        self.create_timer(max(timeout / 4, 0.005), self.timeout_callback)
+        self.create_timer(1.0, self.diagnostics_callback)
+        self.add_post_set_parameters_callback(self.parameters_callback)
+        self.get_logger().info(f'{self.model.family} policy from {weights}')
+
+    def parameters_callback(self, params) -> None:
+        for param in params:
+            if param.name == 'context_timeout':
+                self.pairer.context_timeout = float(param.value)
+
+    def joint_state_callback(self, msg: JointState) -> None:
+        try:
+            obs = self.layout.observation_from_joint_state(msg.name, msg.position,
+                                                           msg.velocity)
+        except ValueError as error:
+            raise GraphMismatch(f'joint states do not fit the {self.model.family} weights: '
+                                f'{error}') from None
+        stamp = stamp_ns(msg.header)
+        now = time.monotonic()
+        self.received_at[stamp] = now
+        self.pairer.add_state(stamp, obs, now)
+        self.act_on_ready()
+
+    def context_callback(self, msg: Context) -> None:
+        latent = np.asarray(msg.latent, dtype=np.float32)
+        if latent.shape != (self.model.context_dim,) or not np.all(np.isfinite(latent)):
+            self.counters['bad_contexts'] += 1
+            self.warnings.warn('context', f'ignored a context of {latent.size} values '
+                                          f'(expected {self.model.context_dim}, finite)')
+            return
+        self.pairer.add_context(stamp_ns(msg.header), latent)
+        self.act_on_ready()
+
+    def act_on_ready(self) -> None:
+        ready = self.pairer.ready()
+        if ready is None:
+            return
+        stamp, obs, latent = ready
+        action = self.model.act(obs, latent)
+        if not np.all(np.isfinite(action)):
+            self.counters['non_finite_actions'] += 1
+            self.warnings.warn('nonfinite', 'the policy produced a non-finite action; '
+                                            'sending zeros')
+            action = self.zero_action
+        self.publish_command(stamp, np.clip(action, -1.0, 1.0))
+
+    def timeout_callback(self) -> None:
+        stamp = self.pairer.expired(time.monotonic())
+        if stamp is None:
+            return
+        self.counters['zero_actions'] += 1
+        self.warnings.warn('timeout', f'no context within {self.pairer.context_timeout} s; '
+                                      'sending a zero action')
+        self.publish_command(stamp, self.zero_action)
+
+    def publish_command(self, stamp: int, action: np.ndarray) -> None:
+        msg = JointState(name=self.actuator_names, effort=action.tolist())
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        self.command_pub.publish(msg)
+        received = self.received_at.pop(stamp, time.monotonic())
+        self.action_rate.record(time.monotonic() - received)
+        for old in [s for s in self.received_at if s < stamp]:
+            del self.received_at[old]
+
+    def diagnostics_callback(self) -> None:
+        values = dict(self.action_rate.report(), dropped_states=self.pairer.dropped,
+                      **self.counters)
+        problem = 'zero or non-finite actions sent' if (
+            self.counters['zero_actions'] or self.counters['non_finite_actions']) else None
+        self.diagnostics_pub.publish(diagnostic_array(self, 'policy', self.model.family,
+                                                      values, problem))
+
+
+def main(args=None):
+    return run_node(PolicyNode, args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

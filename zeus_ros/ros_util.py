@@ -1,0 +1,75 @@
+"""Small pieces every zeus_ros node shares: QoS, stamps, diagnostics, throttled warnings."""
+
+from __future__ import annotations
+
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+# Reliable, keep-last 10, volatile on every topic of the loop. Lockstep needs
+# reliability (a lost state or command stalls a step until the timeout and
+# breaks determinism); the shallow queue bounds the backlog in realtime mode,
+# where only the newest state matters.
+LOOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+def stamp_ns(header) -> int:
+    """Return a header's stamp as integer nanoseconds."""
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def describe(text: str, read_only: bool = False, **ranges) -> ParameterDescriptor:
+    """Parameter descriptor with a description, optional ranges and read-only flag."""
+    return ParameterDescriptor(description=text, read_only=read_only, **ranges)
+
+
+def diagnostic_array(node, name: str, hardware_id: str, values: dict,
+                     problem: str | None = None) -> DiagnosticArray:
+    """One status for `node`: OK, or WARN with `problem` as its message."""
+    status = DiagnosticStatus(
+        level=DiagnosticStatus.WARN if problem else DiagnosticStatus.OK,
+        name=f'{node.get_name()}: {name}', hardware_id=hardware_id,
+        message=problem or 'ok',
+        values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+    array = DiagnosticArray(status=[status])
+    array.header.stamp = node.get_clock().now().to_msg()
+    return array
+
+
+class ThrottledWarnings:
+    """Log a warning per key at most once per period."""
+
+    def __init__(self, logger, period_s: float = 2.0):
+        self.logger, self.period_s = logger, period_s
+        self._last: dict[str, float] = {}
+
+    def warn(self, key: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, float('-inf')) >= self.period_s:
+            self._last[key] = now
+            self.logger.warning(text)
+
+
+class RateMeter:
+    """Events per second and mean latency over the last reporting period."""
+
+    def __init__(self):
+        self.count, self.latency_sum, self.total = 0, 0.0, 0
+        self._since = time.monotonic()
+
+    def record(self, latency_s: float = 0.0) -> None:
+        self.count += 1
+        self.total += 1
+        self.latency_sum += latency_s
+
+    def report(self) -> dict:
+        now = time.monotonic()
+        elapsed = max(now - self._since, 1e-9)
+        mean_ms = 1e3 * self.latency_sum / self.count if self.count else 0.0
+        values = {'rate_hz': f'{self.count / elapsed:.1f}', 'latency_ms': f'{mean_ms:.3f}',
+                  'total': self.total}
+        self.count, self.latency_sum, self._since = 0, 0.0, now
+        return values

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import copy
 import math
+import time
 
 import numpy as np
 import torch
@@ -129,6 +130,7 @@ class ZeusAgent:
             lr=cfg.model_lr)
         self.decoder_opt = torch.optim.Adam(self.decoder.parameters(), lr=cfg.decoder_lr)
         self.update_step = 0
+        self.timers: dict[str, float] | None = None  # set to {} to profile update()
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -242,18 +244,27 @@ class ZeusAgent:
         return F.mse_loss(self.decoder(c.detach()), self.normalise_param(param))
 
     # -- update ----------------------------------------------------------------
+    def _tick(self, name: str, start: float) -> float:
+        """Accumulate section time into `self.timers` when profiling; return now."""
+        now = time.perf_counter()
+        if self.timers is not None:
+            self.timers[name] = self.timers.get(name, 0.0) + now - start
+        return now
+
     def update(self, b: Batch, step: int | None = None) -> dict:
         """One update of every component on a batch; returns scalar metrics."""
         cfg = self.config
         self.update_step += 1
         n = self.update_step
         metrics = {}
+        t = time.perf_counter()
 
         loss, z, c, m = self.critic_loss(b)
         metrics.update(m)
         self.critic_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.critic_opt.step()
+        t = self._tick('critic', t)
 
         if n % cfg.actor_update_freq == 0:
             self.critic.requires_grad_(False)
@@ -267,21 +278,25 @@ class ZeusAgent:
             self.critic.requires_grad_(True)
             metrics.update(m)
             metrics['alpha'] = self.alpha.item()
+            t = self._tick('actor_alpha', t)
 
         if n % cfg.critic_target_update_freq == 0:
             soft_update(self.critic, self.critic_target, cfg.critic_tau)
             soft_update(self.phi, self.phi_target, cfg.encoder_tau)
             soft_update(self.psi, self.psi_target, cfg.encoder_tau)
+            t = self._tick('target', t)
 
         loss, c, m = self.model_loss(b)
         metrics.update(m)
         self.model_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.model_opt.step()
+        t = self._tick('model_context', t)
 
         dec = self.decoder_loss(c, b.param)
         self.decoder_opt.zero_grad(set_to_none=True)
         dec.backward()
         self.decoder_opt.step()
         metrics['decoder_loss'] = dec.item()
+        self._tick('decoder', t)
         return metrics

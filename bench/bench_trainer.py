@@ -1,0 +1,99 @@
+"""Benchmark the trainer: environment steps per second with updates, and where time goes.
+
+    PYTHONPATH=. python bench/bench_trainer.py --family walker-walk-v0 --profile cpu
+
+Runs the real `Trainer.collect` + `ZeusAgent.update` loop (after a short
+random-exploration warm-up that fills the replay buffer) and reports env
+steps/s counting every training task's step, with the time split into
+simulation, acting, bookkeeping (windows + replay), sampling and each update
+section (critic, actor+alpha, targets, model/context, decoder).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import tempfile
+import time
+
+from zeus_ros.train import build_parser, Trainer
+
+
+class _Timed:
+    """Wrap a callable and accumulate its wall time."""
+
+    def __init__(self, fn):
+        self.fn, self.total = fn, 0.0
+
+    def __call__(self, *args, **kwargs):
+        t = time.perf_counter()
+        try:
+            return self.fn(*args, **kwargs)
+        finally:
+            self.total += time.perf_counter() - t
+
+
+def run(family: str, profile: str, timesteps: int, warmup: int) -> dict:
+    """Measure `timesteps` steady-state timesteps; return the figures."""
+    out = Path(tempfile.mkdtemp(prefix='zeus_bench_'))
+    args = build_parser().parse_args(['--family', family, '--profile', profile,
+                                      '--out', str(out), '--set', f'init_steps={warmup}',
+                                      'replay_capacity=100000'])
+    tr = Trainer(args)
+    cfg = tr.cfg
+    while tr.timestep < warmup:  # uniform exploration fills the buffer
+        tr.collect()
+        tr.timestep += 1
+    for _ in range(20):  # warm up torch
+        tr.agent.update(tr.replay.sample(cfg.batch_size))
+    sims = [_Timed(env.step) for env in tr.envs]
+    for env, timed in zip(tr.envs, sims, strict=True):
+        env.step = timed
+    act = _Timed(tr.agent.act)
+    tr.agent.act = act
+    tr._log_episode = lambda task: None
+    tr.agent.timers = {}
+    sample_t = collect_t = 0.0
+    env0 = tr.env_steps
+    start = time.perf_counter()
+    for _ in range(timesteps):
+        t0 = time.perf_counter()
+        tr.collect()
+        t1 = time.perf_counter()
+        tr.timestep += 1
+        batch = tr.replay.sample(cfg.batch_size)
+        t2 = time.perf_counter()
+        tr.agent.update(batch)
+        collect_t += t1 - t0
+        sample_t += t2 - t1
+    total = time.perf_counter() - start
+    env_steps = tr.env_steps - env0
+    sim = sum(s.total for s in sims)
+    split = {'simulation': sim, 'acting': act.total,
+             'windows+replay add': collect_t - sim - act.total, 'replay sample': sample_t}
+    split.update({f'update/{k}': v for k, v in tr.agent.timers.items()})
+    return {'family': family, 'profile': profile, 'tasks': len(tr.envs),
+            'batch': cfg.batch_size, 'hidden': cfg.hidden_dim, 'threads': cfg.num_threads,
+            'timesteps': timesteps, 'env_steps': env_steps, 'seconds': total,
+            'env_steps_per_s': env_steps / total, 'split': split}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--family', nargs='*', default=['walker-walk-v0'])
+    p.add_argument('--profile', default='cpu', choices=('cpu', 'paper'))
+    p.add_argument('--timesteps', type=int, default=300)
+    p.add_argument('--warmup', type=int, default=200)
+    args = p.parse_args(argv)
+    for family in args.family:
+        r = run(family, args.profile, args.timesteps, args.warmup)
+        print(f"{r['family']} profile={r['profile']} tasks={r['tasks']} batch={r['batch']} "
+              f"hidden={r['hidden']} threads={r['threads']}: {r['env_steps']} env steps in "
+              f"{r['seconds']:.1f} s = {r['env_steps_per_s']:.0f} env steps/s (with updates)")
+        for k, v in r['split'].items():
+            print(f'  {k:<22} {1000 * v / r["timesteps"]:7.2f} ms/timestep '
+                  f'({100 * v / r["seconds"]:4.1f} %)')
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,185 @@
+"""Checkpoints: round trip, resume state, and refusal of corrupt or mismatched ones."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from safetensors.torch import load_file, save_file
+import torch
+
+from sim_node.env import ParamEnv
+from zeus_ros.checkpoint import (CheckpointError, load_training_checkpoint, MODEL_FILE,
+                                 save_checkpoint, sha256_file, STATE_FILE)
+from zeus_ros.core.config import make_config
+from zeus_ros.core.inference import InferenceModel
+from zeus_ros.core.replay import ReplayBuffer
+from zeus_ros.core.window import ContextWindow
+from zeus_ros.train import env_info, make_agent
+
+FAMILY = 'finger-spin-v0'
+
+
+def tiny(**kw):
+    base = dict(hidden_dim=32, context_dim=6, feature_dim=8, encoder_hidden=16,
+                context_hidden=16, dynamics_hidden=16, decoder_hidden=8,
+                batch_size_per_task=2, replay_capacity=100, num_threads=1)
+    base.update(kw)
+    return make_config(FAMILY, 'cpu', **base)
+
+
+@pytest.fixture(scope='module')
+def env():
+    return ParamEnv(FAMILY, seed=0)
+
+
+def trained_agent(env, cfg=None):
+    torch.manual_seed(0)
+    agent = make_agent(cfg or tiny(), env)
+    replay = ReplayBuffer(agent.config.replay_capacity, env.obs_dim, env.action_dim,
+                          agent.config.context_length, agent.row_dim)
+    w = ContextWindow(agent.config.context_length, env.obs_dim, env.action_dim)
+    obs = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        a = rng.uniform(-1, 1, env.action_dim)
+        res = env.step(a)
+        before = w.arrays()
+        w.push(obs, a, res.reward, res.observation)
+        replay.add(obs, a, res.reward, res.observation, False, before, w.arrays(), 0, 0.05)
+        obs = res.observation
+    for _ in range(3):
+        agent.update(replay.sample(16))
+    return agent, replay
+
+
+@pytest.fixture()
+def saved(env, tmp_path):
+    agent, replay = trained_agent(env)
+    path = save_checkpoint(tmp_path / 'ckpt', agent, env_info(env),
+                           {'timestep': 7, 'env_steps': 56, 'update_step': 3, 'episodes': 0},
+                           {'trainer': {'x': 1}}, replay)
+    return agent, replay, path
+
+
+def test_round_trip_inference_matches_agent(env, saved):
+    agent, _, path = saved
+    meta = json.loads((path / 'metadata.json').read_text())
+    assert meta['family'] == FAMILY and meta['context']['k'] == 5
+    assert meta['obs_layout']['joint_names'] == list(env.joint_names)
+    assert meta['action_layout']['actuator_names'] == list(env.actuator_names)
+    assert meta['files'][MODEL_FILE]['sha256'] == sha256_file(path / MODEL_FILE)
+    model = InferenceModel.load(path, expected_family=FAMILY)
+    w = ContextWindow(model.k, env.obs_dim, env.action_dim)
+    obs = env.reset(seed=3)
+    for _ in range(3):
+        rows, mask = w.arrays()
+        latent = model.context(rows, mask)
+        assert latent.dtype == np.float32 and latent.shape == (6,)
+        action = model.act(obs, latent)
+        expected = agent.act(obs, rows, mask, deterministic=True)
+        np.testing.assert_allclose(action, expected, rtol=0, atol=1e-6)
+        assert action.dtype == np.float64 and np.all(np.abs(action) <= 1)
+        res = env.step(action)
+        w.push(obs, action, res.reward, res.observation)
+        obs = res.observation
+    assert np.isfinite(model.decode(latent))
+    empty = model.context(*ContextWindow(model.k, env.obs_dim, env.action_dim).arrays())
+    assert not empty.any()
+
+
+def test_resume_restores_training_state(env, saved):
+    agent, replay, path = saved
+    torch.manual_seed(123)
+    fresh = make_agent(tiny(), env)
+    fresh_replay = ReplayBuffer(100, env.obs_dim, env.action_dim, 5, agent.row_dim)
+    info = load_training_checkpoint(path, fresh, fresh_replay)
+    assert info['timestep'] == 7 and info['update_step'] == 3 == fresh.update_step
+    assert info['rng_states']['trainer'] == {'x': 1} and info['replay_restored']
+    for name, module in agent.modules().items():
+        for p, q in zip(module.state_dict().values(),
+                        fresh.modules()[name].state_dict().values(), strict=True):
+            assert torch.equal(p, q), name
+    assert torch.equal(agent.log_alpha, fresh.log_alpha)
+    s1, s2 = agent.critic_opt.state_dict()['state'], fresh.critic_opt.state_dict()['state']
+    assert s1.keys() == s2.keys() and len(s1) > 0
+    for i in s1:
+        assert torch.equal(s1[i]['exp_avg_sq'], s2[i]['exp_avg_sq'])
+    assert len(fresh_replay) == len(replay) == 40
+    np.testing.assert_array_equal(fresh_replay.ctx_rows[:40], replay.ctx_rows[:40])
+    # identical next update from identical state
+    torch.manual_seed(5)
+    b = replay.sample(8)
+    torch.manual_seed(6)
+    m1 = agent.update(b)
+    torch.manual_seed(6)
+    m2 = fresh.update(b)
+    assert m1 == m2
+
+
+def test_resume_refuses_other_config(env, saved):
+    _, _, path = saved
+    other = make_agent(tiny(alpha_psi=0.0), env)
+    with pytest.raises(CheckpointError, match='config differs'):
+        load_training_checkpoint(path, other)
+
+
+def test_corrupt_file_refused(saved):
+    _, _, path = saved
+    data = bytearray((path / MODEL_FILE).read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (path / MODEL_FILE).write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match='SHA-256'):
+        InferenceModel.load(path)
+
+
+def test_truncated_file_refused(saved):
+    _, _, path = saved
+    data = (path / STATE_FILE).read_bytes()
+    (path / STATE_FILE).write_bytes(data[: len(data) // 3])
+    with pytest.raises(CheckpointError, match='truncated'):
+        load_training_checkpoint(path, saved[0])
+
+
+def test_missing_file_and_bad_json_refused(saved, tmp_path):
+    _, _, path = saved
+    copy = tmp_path / 'copy'
+    shutil.copytree(path, copy)
+    (copy / MODEL_FILE).unlink()
+    with pytest.raises(CheckpointError, match='missing'):
+        InferenceModel.load(copy)
+    (path / 'metadata.json').write_text('{"family": ')
+    with pytest.raises(CheckpointError, match='not valid JSON'):
+        InferenceModel.load(path)
+    with pytest.raises(CheckpointError, match='no checkpoint'):
+        InferenceModel.load(tmp_path / 'nowhere')
+
+
+def test_family_and_size_mismatch_refused(saved):
+    _, _, path = saved
+    with pytest.raises(CheckpointError, match="family 'finger-spin-v0', expected"):
+        InferenceModel.load(path, expected_family='walker-walk-v0')
+    with pytest.raises(CheckpointError, match='observation size mismatch'):
+        InferenceModel.load(path, obs_dim=18)
+
+
+def test_shape_mismatch_refused_even_with_matching_hash(saved):
+    _, _, path = saved
+    tensors = load_file(str(path / MODEL_FILE))
+    key = next(k for k in tensors if k.startswith('actor.') and k.endswith('weight'))
+    tensors[key] = torch.zeros(tensors[key].shape[0] + 1, tensors[key].shape[1])
+    save_file(tensors, str(path / MODEL_FILE))
+    meta = json.loads((path / 'metadata.json').read_text())
+    meta['files'][MODEL_FILE] = {'sha256': sha256_file(path / MODEL_FILE),
+                                 'bytes': (path / MODEL_FILE).stat().st_size}
+    (path / 'metadata.json').write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match='shape mismatch'):
+        InferenceModel.load(path)
+
+
+def test_never_uses_pickle():
+    import zeus_ros.checkpoint as ck
+    import zeus_ros.core.inference as inf
+    for mod in (ck, inf):
+        src = open(mod.__file__).read()
+        assert 'torch.load(' not in src and 'import pickle' not in src

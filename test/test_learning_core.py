@@ -1,0 +1,277 @@
+"""Learning core: context window, psi, losses and which parameters each loss trains."""
+
+import numpy as np
+import pytest
+import torch
+
+from zeus_ros.core.config import make_config
+from zeus_ros.core.networks import ContextEncoder
+from zeus_ros.core.replay import ReplayBuffer
+from zeus_ros.core.window import ContextWindow, row_dim
+from zeus_ros.core.zeus import w2_diag_gaussians, ZeusAgent
+
+OBS, ACT, K = 5, 2, 4
+ROW = row_dim(OBS, ACT)
+
+
+def tiny_config(**kw):
+    base = dict(hidden_dim=32, context_dim=6, feature_dim=8, encoder_hidden=16,
+                context_hidden=16, dynamics_hidden=16, decoder_hidden=8, context_length=K,
+                batch_size_per_task=4, replay_capacity=200, num_threads=1)
+    base.update(kw)
+    return make_config('walker-walk-v0', 'cpu', **base)
+
+
+def make_agent(**kw):
+    torch.manual_seed(0)
+    return ZeusAgent(tiny_config(**kw), OBS, ACT, param_offset=0.8, param_scale=0.55)
+
+
+def make_batch(n=16, seed=0):
+    rng = np.random.default_rng(seed)
+    buf = ReplayBuffer(64, OBS, ACT, K, ROW, seed=seed)
+    for i in range(n):
+        w = ContextWindow(K, OBS, ACT)
+        for _ in range(i % (K + 2)):
+            w.push(rng.normal(size=OBS), rng.uniform(-1, 1, ACT), rng.normal(),
+                   rng.normal(size=OBS))
+        before = w.arrays()
+        s, a, r, s2 = rng.normal(size=OBS), rng.uniform(-1, 1, ACT), rng.normal(), \
+            rng.normal(size=OBS)
+        w.push(s, a, r, s2)
+        buf.add(s, a, r, s2, False, before, w.arrays(), i % 8, 0.8 + 0.05 * (i % 8))
+    return buf.sample(n)
+
+
+def grads_of(module):
+    return [p.grad for p in module.parameters()]
+
+
+def has_grad(module):
+    return any(g is not None and g.abs().sum() > 0 for g in grads_of(module))
+
+
+def no_grad(module):
+    return all(g is None or g.abs().sum() == 0 for g in grads_of(module))
+
+
+def zero_all(agent):
+    for m in agent.modules().values():
+        m.zero_grad(set_to_none=True)
+    agent.log_alpha.grad = None
+
+
+# -- context window ------------------------------------------------------------
+def test_window_at_episode_start_is_empty_and_psi_gives_zero():
+    w = ContextWindow(K, OBS, ACT)
+    rows, mask = w.arrays()
+    assert rows.shape == (K, ROW) and rows.dtype == np.float32
+    assert mask.shape == (K,) and mask.dtype == bool and not mask.any()
+    assert not rows.any()
+    for agg in ('mean', 'sum', 'max'):
+        psi = ContextEncoder(ROW, 6, 16, 2, agg)
+        torch.nn.init.constant_(psi.net[-1].bias, 3.0)  # a nonzero code for any row
+        out = psi(torch.from_numpy(rows)[None], torch.from_numpy(mask)[None])
+        assert torch.equal(out, torch.zeros(1, 6)), agg
+
+
+def test_window_keeps_last_k_of_episode_oldest_first_and_clears():
+    w = ContextWindow(K, OBS, ACT)
+    for t in range(K + 2):
+        w.push(np.full(OBS, t), np.full(ACT, 0.5), float(t), np.full(OBS, t + 1))
+        rows, mask = w.arrays()
+        n = min(t + 1, K)
+        assert w.fill == n and mask.sum() == n and mask[:n].all()
+        assert not rows[n:].any()
+        # rows hold s = the transition index: oldest first
+        np.testing.assert_array_equal(rows[:n, 0], np.arange(t + 1 - n, t + 1))
+        np.testing.assert_array_equal(rows[:n, OBS + ACT], np.arange(t + 1 - n, t + 1))
+        np.testing.assert_array_equal(rows[:n, -1], np.arange(t + 2 - n, t + 2))
+    w.clear()
+    rows, mask = w.arrays()
+    assert w.fill == 0 and not mask.any() and not rows.any()
+
+
+def test_window_rejects_wrong_sizes():
+    w = ContextWindow(K, OBS, ACT)
+    with pytest.raises(ValueError):
+        w.push(np.zeros(OBS + 1), np.zeros(ACT), 0.0, np.zeros(OBS))
+    with pytest.raises(ValueError):
+        w.push(np.zeros(OBS), np.zeros(ACT + 1), 0.0, np.zeros(OBS))
+
+
+# -- psi -------------------------------------------------------------------------
+@pytest.mark.parametrize('agg', ['mean', 'sum', 'max'])
+def test_psi_is_permutation_invariant_and_ignores_padding(agg):
+    torch.manual_seed(1)
+    psi = ContextEncoder(ROW, 6, 16, 2, agg)
+    rows = torch.randn(3, K, ROW)
+    mask = torch.tensor([[True, True, True, False], [True] * K, [True, False, False, False]])
+    out = psi(rows, mask)
+    perm = torch.tensor([2, 0, 3, 1])
+    assert torch.allclose(psi(rows[:, perm], mask[:, perm]), out, atol=1e-6)
+    garbage = rows.clone()
+    garbage[~mask] = 1e3
+    assert torch.allclose(psi(garbage, mask), out, atol=1e-6)
+    # and it is not trivially constant: changing a valid row changes the output
+    changed = rows.clone()
+    changed[:, 0] += 1.0
+    assert not torch.allclose(psi(changed, mask), out)
+
+
+def test_w2_closed_form():
+    mu = torch.tensor([[0.0, 1.0]])
+    ls = torch.log(torch.tensor([[1.0, 2.0]]))
+    assert torch.allclose(w2_diag_gaussians(mu, ls, mu, ls), torch.zeros(1))
+    mu2 = torch.tensor([[3.0, 5.0]])
+    ls2 = torch.log(torch.tensor([[1.0, 4.0]]))
+    expected = torch.sqrt(torch.tensor(9.0 + 16.0 + 4.0))
+    assert torch.allclose(w2_diag_gaussians(mu, ls, mu2, ls2), expected)
+
+
+# -- which loss trains what ------------------------------------------------------
+def test_critic_loss_trains_critic_phi_psi_only():
+    agent, b = make_agent(), make_batch()
+    zero_all(agent)
+    loss, _, _, _ = agent.critic_loss(b)
+    loss.backward()
+    for name in ('critic', 'phi', 'psi'):
+        assert has_grad(getattr(agent, name)), name
+    for name in ('actor', 'T', 'R', 'decoder', 'critic_target', 'phi_target', 'psi_target'):
+        assert no_grad(getattr(agent, name)), name
+    assert agent.log_alpha.grad is None
+
+
+def test_actor_loss_trains_actor_only_and_alpha_loss_alpha_only():
+    agent, b = make_agent(), make_batch()
+    _, z, c, _ = agent.critic_loss(b)
+    zero_all(agent)
+    agent.critic.requires_grad_(False)
+    actor_loss, alpha_loss, _ = agent.actor_and_alpha_loss(z, c)
+    actor_loss.backward(retain_graph=True)
+    assert has_grad(agent.actor)
+    for name in ('phi', 'psi', 'critic', 'T', 'R', 'decoder'):
+        assert no_grad(getattr(agent, name)), name
+    assert agent.log_alpha.grad is None
+    agent.actor.zero_grad(set_to_none=True)
+    alpha_loss.backward()
+    assert agent.log_alpha.grad is not None and agent.log_alpha.grad != 0
+    assert no_grad(agent.actor)
+
+
+def test_context_target_carries_no_gradient():
+    agent, b = make_agent(), make_batch()
+    z = agent.phi(b.obs)
+    c = agent.psi(b.ctx_rows, b.ctx_mask)
+    d = agent.context_target(z, b.action, c, c.flip(0))
+    assert not d.requires_grad
+    assert (d >= 0).all() and d.abs().sum() > 0
+
+
+def test_context_loss_trains_psi_only():
+    agent, b = make_agent(), make_batch()
+    zero_all(agent)
+    with torch.no_grad():
+        z = agent.phi(b.obs)
+    c = agent.psi(b.ctx_rows, b.ctx_mask)
+    loss = agent.context_loss(z, b.action, c, torch.randperm(c.shape[0]))
+    loss.backward()
+    assert has_grad(agent.psi)
+    for name in ('phi', 'T', 'R', 'critic', 'actor', 'decoder'):
+        assert no_grad(getattr(agent, name)), name
+
+
+def test_model_loss_trains_psi_T_R_not_phi():
+    agent, b = make_agent(), make_batch()
+    zero_all(agent)
+    loss, _, metrics = agent.model_loss(b)
+    loss.backward()
+    assert 'context_loss' in metrics
+    for name in ('psi', 'T', 'R'):
+        assert has_grad(getattr(agent, name)), name
+    for name in ('phi', 'critic', 'actor', 'decoder'):
+        assert no_grad(getattr(agent, name)), name
+
+
+def test_alpha_psi_zero_context_loss_leaves_psi_untouched():
+    b = make_batch()
+    perm = torch.randperm(b.obs.shape[0])
+    grads = {}
+    for alpha_psi in (0.0, 1.0):
+        agent = make_agent(alpha_psi=alpha_psi)
+        if alpha_psi == 0.0:
+            def boom(*args, **kwargs):
+                raise AssertionError('context loss evaluated with alpha_psi = 0')
+            agent.context_loss = boom
+        zero_all(agent)
+        loss, _, metrics = agent.model_loss(b, perm)
+        loss.backward()
+        assert ('context_loss' in metrics) == (alpha_psi > 0)
+        grads[alpha_psi] = {n: [p.grad.clone() for p in getattr(agent, n).parameters()]
+                            for n in ('psi', 'T', 'R')}
+    # The context term changes psi's gradient, and only psi's: with it removed,
+    # psi's gradient is exactly that of the dynamics + reward terms.
+    assert any(not torch.allclose(a, c) for a, c in zip(grads[0.0]['psi'], grads[1.0]['psi'],
+                                                        strict=True))
+    for name in ('T', 'R'):
+        for a, c in zip(grads[0.0][name], grads[1.0][name], strict=True):
+            assert torch.allclose(a, c), name
+
+
+def test_decoder_loss_does_not_move_psi():
+    agent, b = make_agent(), make_batch()
+    zero_all(agent)
+    c = agent.psi(b.ctx_rows, b.ctx_mask)
+    loss = agent.decoder_loss(c, b.param)
+    loss.backward()
+    assert has_grad(agent.decoder)
+    assert no_grad(agent.psi) and no_grad(agent.phi)
+
+
+def test_update_moves_the_right_things_and_targets_lag():
+    agent, b = make_agent(), make_batch()
+    before = {n: [p.detach().clone() for p in m.parameters()]
+              for n, m in agent.modules().items()}
+    m1 = agent.update(b)
+    assert 'actor_loss' not in m1  # actor every 2 updates
+    assert all(torch.equal(p, q) for p, q in zip(before['actor'], agent.actor.parameters(),
+                                                 strict=True))
+    assert all(torch.equal(p, q) for p, q in zip(
+        before['critic_target'], agent.critic_target.parameters(), strict=True))
+    m2 = agent.update(b)
+    assert 'actor_loss' in m2 and np.isfinite(list(m2.values())).all()
+    for name, params in before.items():
+        moved = any(not torch.equal(p, q) for p, q in zip(
+            params, agent.modules()[name].parameters(), strict=True))
+        assert moved, name
+    # targets are Polyak averages: moved, but far less than the online nets
+    online = sum((p - q).abs().sum() for p, q in zip(before['critic'],
+                                                     agent.critic.parameters(), strict=True))
+    target = sum((p - q).abs().sum() for p, q in zip(
+        before['critic_target'], agent.critic_target.parameters(), strict=True))
+    assert 0 < target < online
+
+
+def test_act_shapes_and_range():
+    agent = make_agent()
+    w = ContextWindow(K, OBS, ACT)
+    rows, mask = w.arrays()
+    a = agent.act(np.ones(OBS), rows, mask, deterministic=True)
+    assert a.shape == (ACT,) and a.dtype == np.float64 and np.all(np.abs(a) <= 1)
+    batch = agent.act(np.ones((3, OBS)), np.stack([rows] * 3), np.stack([mask] * 3))
+    assert batch.shape == (3, ACT) and np.all(np.abs(batch) <= 1)
+
+
+def test_replay_stores_windows_task_and_param():
+    b = make_batch(n=16)
+    assert b.ctx_rows.shape == (16, K, ROW) and b.ctx_rows.dtype == torch.float32
+    assert b.ctx_mask.dtype == torch.bool and b.task.dtype == torch.int64
+    # the next window has exactly one more valid row (up to k) than the one before s_t
+    n_before, n_after = b.ctx_mask.sum(1), b.next_ctx_mask.sum(1)
+    assert torch.equal(n_after, torch.clamp(n_before + 1, max=K))
+    # and its newest row is the stored transition itself
+    last = (n_after - 1).long()
+    newest = b.next_ctx_rows[torch.arange(16), last]
+    assert torch.allclose(newest[:, :OBS], b.obs)
+    assert torch.allclose(newest[:, -OBS:], b.next_obs)
+    assert torch.allclose(newest[:, OBS + ACT], b.reward)

@@ -1,0 +1,81 @@
+"""Deployment model: the exact functions the ROS nodes and `zeus_ros.evaluate` call.
+
+    model = InferenceModel.load(path)           # checks the checkpoint (CheckpointError)
+    latent = model.context(rows, mask)          # np.float32 [context_dim]
+    action = model.act(obs, latent)             # np.float64 [action_dim], tanh(mean)
+    estimate = model.decode(latent)             # physical parameter (float; NaN if none)
+
+Everything runs with batch size 1 and one torch thread (set on load:
+``torch.set_num_threads(1)`` is process-wide), in float32, so the in-process
+evaluation and the ROS nodes, which pass the latent between them as float32,
+compute bit-identical actions for the same observations and windows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from zeus_ros.checkpoint import load_model
+
+
+class InferenceModel:
+    """phi, psi, actor and decoder of a checkpoint, with numpy in and out."""
+
+    def __init__(self, metadata: dict, modules: dict):
+        self.metadata = metadata
+        self.phi = modules['phi']
+        self.psi = modules['psi']
+        self.actor = modules['actor']
+        self.decoder = modules.get('decoder')
+        self.family = metadata['family']
+        self.obs_dim = int(metadata['obs_layout']['obs_dim'])
+        self.action_dim = int(metadata['action_layout']['action_dim'])
+        self.k = int(metadata['context']['k'])
+        self.row_dim = int(metadata['context']['row_dim'])
+        self.context_dim = int(metadata['context']['context_dim'])
+        norm = metadata['param_normalisation']
+        self.param_offset = float(norm['offset'])
+        self.param_scale = float(norm['scale'])
+
+    @classmethod
+    def load(cls, path, expected_family: str | None = None, obs_dim: int | None = None,
+             action_dim: int | None = None) -> 'InferenceModel':
+        """Load a checkpoint directory (or a run directory holding `checkpoint/`)."""
+        torch.set_num_threads(1)
+        meta, modules = load_model(path, expected_family, obs_dim, action_dim)
+        return cls(meta, modules)
+
+    @torch.no_grad()
+    def context(self, rows: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Latent context psi(H) of one window (rows [k, row_dim], mask [k]) as float32."""
+        rows = np.asarray(rows, dtype=np.float32)
+        mask = np.asarray(mask, dtype=bool)
+        if rows.shape != (self.k, self.row_dim) or mask.shape != (self.k,):
+            raise ValueError(f'window must be rows {(self.k, self.row_dim)} and mask '
+                             f'({self.k},), got {rows.shape} and {mask.shape}')
+        latent = self.psi(torch.from_numpy(rows)[None], torch.from_numpy(mask)[None])[0]
+        return latent.numpy().astype(np.float32)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, latent: np.ndarray) -> np.ndarray:
+        """Deterministic action tanh(mu) in [-1, 1] as float64."""
+        obs = np.asarray(obs, dtype=np.float32).reshape(-1)
+        latent = np.asarray(latent, dtype=np.float32).reshape(-1)
+        if obs.shape != (self.obs_dim,) or latent.shape != (self.context_dim,):
+            raise ValueError(f'obs must have {self.obs_dim} values and latent '
+                             f'{self.context_dim}, got {obs.size} and {latent.size}')
+        z = self.phi(torch.from_numpy(obs)[None])
+        x = torch.cat([z, torch.from_numpy(latent)[None]], dim=-1)
+        return self.actor.mean_action(x)[0].numpy().astype(np.float64)
+
+    @torch.no_grad()
+    def decode(self, latent: np.ndarray) -> float:
+        """Physical-parameter estimate read from a latent (NaN without a decoder)."""
+        if self.decoder is None:
+            return math.nan
+        latent = np.asarray(latent, dtype=np.float32).reshape(1, -1)
+        value = float(self.decoder(torch.from_numpy(latent))[0])
+        return value * self.param_scale + self.param_offset

@@ -1,0 +1,146 @@
+"""Evaluate a checkpoint in process, exactly as the ROS loop runs the policy.
+
+    python -m zeus_ros.evaluate --weights runs/w0 --split extrapolation --episodes 2
+
+`run_episode` is the reference order of operations that the ROS nodes follow
+(and that the ROS-vs-in-process equality test compares against):
+
+    obs = env.reset(seed)                       # window cleared
+    each step:
+        rows, mask = window.arrays()
+        latent = model.context(rows, mask)      # float32 (what the context node publishes)
+        action = model.act(obs, latent)         # float64 in [-1, 1]
+        result = env.step(action)
+        window.push(obs, action, result.reward, result.observation)
+        obs = result.observation
+    at the episode end (truncation, terminal or instability) the window is cleared.
+
+An optional swap schedule {step: value} calls `env.set_param(value)` before
+that step's context is computed (a live parameter swap; the window is kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+import sys
+
+import numpy as np
+
+from sim_node.env import ParamEnv
+from sim_node.families import SPLITS
+from zeus_ros.checkpoint import CheckpointError
+from zeus_ros.core.inference import InferenceModel
+from zeus_ros.core.window import ContextWindow
+
+
+@dataclass
+class EpisodeRecord:
+    """Per-step records of one episode (arrays stacked over steps)."""
+
+    observations: np.ndarray  # [T, obs_dim] observation the action was chosen at
+    latents: np.ndarray       # [T, context_dim] float32
+    actions: np.ndarray       # [T, action_dim] float64
+    rewards: np.ndarray       # [T]
+    param_values: np.ndarray  # [T] parameter in force at each step
+    estimates: np.ndarray     # [T] decoder's parameter estimate at each step
+    episode_return: float = 0.0
+    instability: list = field(default_factory=list)
+
+
+def run_episode(model: InferenceModel, family: str, value: float, seed: int,
+                swap_schedule: dict | None = None, max_steps: int | None = None,
+                env: ParamEnv | None = None) -> EpisodeRecord:
+    """Run one deterministic episode in the ROS loop's order; return per-step records."""
+    if env is None:
+        kwargs = {} if max_steps is None else {'episode_steps': max_steps}
+        env = ParamEnv(family, value, seed=seed, **kwargs)
+    elif env.param_value != value:
+        env.set_param(value)
+    window = ContextWindow(model.k, env.obs_dim, env.action_dim)
+    obs = env.reset(seed=seed)
+    window.clear()
+    swaps = dict(swap_schedule or {})
+    rec = {n: [] for n in ('obs', 'lat', 'act', 'rew', 'val', 'est')}
+    instability = []
+    step = 0
+    while True:
+        if step in swaps:
+            env.set_param(swaps[step])
+        rows, mask = window.arrays()
+        latent = model.context(rows, mask)
+        action = model.act(obs, latent)
+        result = env.step(action)
+        rec['obs'].append(obs)
+        rec['lat'].append(latent)
+        rec['act'].append(action)
+        rec['rew'].append(result.reward)
+        rec['val'].append(env.param_value)
+        rec['est'].append(model.decode(latent))
+        step += 1
+        if result.instability:
+            instability.append((step, result.instability))
+            window.clear()
+            break
+        window.push(obs, action, result.reward, result.observation)
+        obs = result.observation
+        if result.truncated or result.terminal:
+            window.clear()
+            break
+    return EpisodeRecord(np.asarray(rec['obs']), np.asarray(rec['lat'], np.float32),
+                         np.asarray(rec['act']), np.asarray(rec['rew']),
+                         np.asarray(rec['val']), np.asarray(rec['est']),
+                         float(np.sum(rec['rew'])), instability)
+
+
+def evaluate(model: InferenceModel, values, episodes: int, seed: int,
+             max_steps: int | None = None) -> list[dict]:
+    """Mean/std return and mean decoder estimate per value."""
+    rows = []
+    for v in values:
+        recs = [run_episode(model, model.family, v, seed + e, max_steps=max_steps)
+                for e in range(episodes)]
+        returns = [r.episode_return for r in recs]
+        rows.append({'value': v, 'mean_return': float(np.mean(returns)),
+                     'std_return': float(np.std(returns)), 'episodes': episodes,
+                     'mean_estimate': float(np.mean([np.nanmean(r.estimates[5:])
+                                                     for r in recs]))})
+    return rows
+
+
+def main(argv=None) -> int:
+    """Console entry point (`eval`)."""
+    p = argparse.ArgumentParser(prog='eval', description=__doc__.split('\n')[0])
+    p.add_argument('--weights', required=True, help='checkpoint dir or run dir')
+    p.add_argument('--split', default='extrapolation', choices=SPLITS)
+    p.add_argument('--episodes', type=int, default=1)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--values', type=float, nargs='*', default=None,
+                   help='parameter values (default: those of --split)')
+    p.add_argument('--max-steps', type=int, default=None, help='episode length cap')
+    args = p.parse_args(argv)
+    try:
+        model = InferenceModel.load(args.weights)
+    except CheckpointError as error:
+        print(f'cannot load weights: {error}', file=sys.stderr)
+        return 2
+    env = ParamEnv(model.family, seed=0)
+    values = args.values if args.values else env.spec.split(args.split)
+    if not values:
+        print(f'{model.family} has no {args.split} values', file=sys.stderr)
+        return 2
+    meta = model.metadata
+    print(f'family {model.family} ({meta["param_name"]}), checkpoint timestep '
+          f'{meta["steps"].get("timestep")}, split {args.split if not args.values else "custom"}'
+          f', {args.episodes} episode(s) per value, seed {args.seed}')
+    print(f'{"value":>10} {"mean_return":>12} {"std":>8} {"decoded":>10}')
+    rows = evaluate(model, values, args.episodes, args.seed, args.max_steps)
+    for r in rows:
+        print(f'{r["value"]:>10.4g} {r["mean_return"]:>12.2f} {r["std_return"]:>8.2f} '
+              f'{r["mean_estimate"]:>10.4g}')
+    print(f'{"mean":>10} {np.mean([r["mean_return"] for r in rows]):>12.2f}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

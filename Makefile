@@ -18,7 +18,7 @@ test: setup
 	$(IN_WS) python -m pytest -q test
 
 demo: setup
-	$(IN_WS) python scripts/demo.py
+	$(IN_WS) python -m zeus_ros.demo --weights weights/walker-walk-v0-zeus --out demo_out
 
 lint: setup
 	$(IN_WS) ruff check .

@@ -28,6 +28,7 @@ setup(
             'context_node = zeus_ros.context_node:main',
             'policy_node = zeus_ros.policy_node:main',
             'bringup = zeus_ros.bringup:main',
+            'demo = zeus_ros.demo:main',
         ],
     },
 )

@@ -129,3 +129,13 @@ def spin_until(node, predicate, timeout: float, period: float = 0.02):
         node.executor.spin_once(timeout_sec=period)
         value = predicate()
     return value
+
+
+@pytest.fixture(scope='session')
+def small_checkpoint(tmp_path_factory):
+    """Train a small walker-walk-v0 checkpoint: a few hundred real training steps."""
+    out = tmp_path_factory.mktemp('train') / 'run'
+    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', 'walker-walk-v0',
+                    '--steps', '300', '--out', str(out), '--eval-every', '0',
+                    '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
+    return out / 'checkpoint'

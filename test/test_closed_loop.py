@@ -1,9 +1,6 @@
 """The three nodes on real DDS are the trained agent: equal returns, faults survived."""
 
-import subprocess
-import sys
-
-from conftest import installed_exe, REPO, spin_until
+from conftest import installed_exe, spin_until
 import numpy as np
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -14,16 +11,6 @@ from zeus_ros.core.inference import InferenceModel
 
 FAMILY = 'walker-walk-v0'
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-
-
-@pytest.fixture(scope='session')
-def small_checkpoint(tmp_path_factory):
-    """Train a small checkpoint for the suite: a few hundred real training steps."""
-    out = tmp_path_factory.mktemp('train') / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
-                    '--steps', '300', '--out', str(out), '--eval-every', '0',
-                    '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
-    return out / 'checkpoint'
 
 
 @pytest.fixture

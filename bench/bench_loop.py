@@ -1,0 +1,199 @@
+"""Benchmark the ROS closed loop against the in-process loop, in one run.
+
+    python bench/bench_loop.py --weights weights/walker-walk-v0-zeus [--realtime-seconds 600]
+
+Measures, with the same checkpoint:
+1. in-process loop (ParamEnv + ContextWindow + InferenceModel, no middleware): steps/s;
+2. lockstep through the three ROS processes: control steps/s over one episode, and
+   the ratio to (1);
+3. step latency, state published -> its command, p50 / p99 / max (seen from an
+   observer process that receives both topics; the sim's own view is in /diagnostics);
+4. realtime mode: period jitter of the sim's state stream (observer receipt times,
+   so it includes DDS delivery noise) and missed deadlines (period > 2x nominal);
+5. live swap: from the parameter set request to the first StepInfo under the new value.
+Prints a table and writes the figures as JSON (--json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+import sys
+import time
+
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+import numpy as np  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+import rclpy  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from sim_node.env import ParamEnv  # noqa: E402
+from zeus_msgs.msg import StepInfo  # noqa: E402
+from zeus_msgs.srv import Reset  # noqa: E402
+from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
+from zeus_ros.core.inference import InferenceModel  # noqa: E402
+from zeus_ros.core.window import ContextWindow  # noqa: E402
+from zeus_ros.ros_util import LOOP_QOS, stamp_ns  # noqa: E402
+
+
+def in_process_rate(weights: Path, steps: int) -> float:
+    """Steps/s of simulation plus inference in one process, as `evaluate` runs it."""
+    model = InferenceModel.load(weights)
+    env = ParamEnv(model.family, seed=0)
+    window = ContextWindow(model.k, env.obs_dim, env.action_dim)
+    obs = env.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(steps):
+        latent = model.context(*window.arrays())
+        action = model.act(obs, latent)
+        result = env.step(action)
+        window.push(obs, action, result.reward, result.observation)
+        obs = result.observation
+        if result.truncated:
+            window.clear()
+            obs = env.reset()
+    return steps / (time.perf_counter() - start)
+
+
+class Observer:
+    """Receipt times of states, commands and step infos, by stamp."""
+
+    def __init__(self, node):
+        self.node = node
+        self.state_at: dict[int, float] = {}
+        self.command_at: dict[int, float] = {}
+        self.steps: list[tuple[float, StepInfo]] = []
+        node.create_subscription(JointState, '/joint_states', self._on_state, LOOP_QOS)
+        node.create_subscription(JointState, '/joint_commands', self._on_command, LOOP_QOS)
+        node.create_subscription(StepInfo, '/zeus/step', self._on_step, LOOP_QOS)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(node)
+
+    def _on_state(self, msg):
+        self.state_at[stamp_ns(msg.header)] = time.perf_counter()
+
+    def _on_command(self, msg):
+        self.command_at.setdefault(stamp_ns(msg.header), time.perf_counter())
+
+    def _on_step(self, msg):
+        self.steps.append((time.perf_counter(), msg))
+
+    def spin_until(self, predicate, timeout):
+        deadline = time.monotonic() + timeout
+        while not predicate() and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+        return predicate()
+
+    def call(self, client, request):
+        client.wait_for_service(timeout_sec=30.0)
+        future = client.call_async(request)
+        self.spin_until(future.done, 30.0)
+        return future.result()
+
+
+def lockstep_figures(observer: Observer, reset_client, param_client, param_name: str,
+                     swaps: int) -> dict:
+    closed = observer.spin_until(
+        lambda: any(any(m.applied_action) for _, m in observer.steps[-3:]), 60.0)
+    if not closed:
+        raise RuntimeError('the loop never closed')
+    response = observer.call(reset_client, Reset.Request(seed=0))
+    episode = int(response.message.split(':')[0].split()[1])
+    observer.spin_until(lambda: any(m.episode == episode and m.truncated
+                                    for _, m in observer.steps), 300.0)
+    times = [t for t, m in observer.steps if m.episode == episode]
+    rate = (len(times) - 1) / (times[-1] - times[0])
+    latencies = np.array([observer.command_at[s] - observer.state_at[s]
+                          for s in observer.state_at if s in observer.command_at
+                          and observer.command_at[s] > observer.state_at[s]]) * 1e3
+    swap_ms = []
+    for i in range(swaps):
+        value = (0.4, 1.7)[i % 2]
+        sent = time.perf_counter()
+        observer.call(param_client, SetParameters.Request(
+            parameters=[Parameter(param_name, value=value).to_parameter_msg()]))
+        observer.spin_until(lambda v=value: observer.steps[-1][1].param_values[0] == v, 10.0)
+        first = next(t for t, m in observer.steps if t >= sent and m.param_values[0] == value)
+        swap_ms.append((first - sent) * 1e3)
+    return {'lockstep_steps_per_s': rate,
+            'latency_ms_p50': float(np.percentile(latencies, 50)),
+            'latency_ms_p99': float(np.percentile(latencies, 99)),
+            'latency_ms_max': float(latencies.max()),
+            'latency_samples': int(latencies.size),
+            'swap_ms_median': float(np.median(swap_ms)), 'swap_ms_max': float(max(swap_ms))}
+
+
+def realtime_figures(observer: Observer, seconds: float, period_s: float) -> dict:
+    observer.state_at.clear()
+    observer.spin_until(lambda: False, seconds)
+    arrivals = np.array(sorted(observer.state_at.values()))
+    intervals = np.diff(arrivals)
+    jitter = np.abs(intervals - period_s) * 1e3
+    return {'realtime_seconds': seconds, 'realtime_states': int(arrivals.size),
+            'realtime_rate_hz': float((arrivals.size - 1) / (arrivals[-1] - arrivals[0])),
+            'jitter_ms_p50': float(np.percentile(jitter, 50)),
+            'jitter_ms_p99': float(np.percentile(jitter, 99)),
+            'jitter_ms_max': float(jitter.max()),
+            'missed_deadlines': int(np.sum(intervals > 2 * period_s))}
+
+
+def run_graph(weights: Path, mode: str, measure) -> dict:
+    bringup = Bringup(node_commands(bringup_args(['--weights', str(weights), '--mode', mode,
+                                                  '--log-level', 'warn'])))
+    rclpy.init()
+    node = rclpy.create_node('zeus_bench')
+    try:
+        return measure(Observer(node), node)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        bringup.stop()
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--weights', type=Path, required=True)
+    parser.add_argument('--realtime-weights', type=Path,
+                        help='checkpoint for the realtime run (default --weights); a '
+                             'cheetah checkpoint gives the 100 Hz case')
+    parser.add_argument('--inprocess-steps', type=int, default=3000)
+    parser.add_argument('--swaps', type=int, default=10)
+    parser.add_argument('--realtime-seconds', type=float, default=60.0)
+    parser.add_argument('--json', type=Path, help='write the figures here')
+    args = parser.parse_args(argv)
+    metadata = json.loads((args.weights / 'metadata.json').read_text())
+    figures = {'weights': str(args.weights), 'family': metadata['family'],
+               'machine': f'{os.cpu_count()} cores', 'load_avg_start': os.getloadavg()[0]}
+    figures['inprocess_steps_per_s'] = in_process_rate(args.weights, args.inprocess_steps)
+
+    def lockstep(observer, node):
+        return lockstep_figures(observer, node.create_client(Reset, '/sim_node/reset'),
+                                node.create_client(SetParameters, '/sim_node/set_parameters'),
+                                metadata['param_name'], args.swaps)
+    figures.update(run_graph(args.weights, 'lockstep', lockstep))
+    figures['lockstep_ratio_to_inprocess'] = (figures['lockstep_steps_per_s']
+                                              / figures['inprocess_steps_per_s'])
+    rt_weights = args.realtime_weights or args.weights
+    rt_meta = json.loads((rt_weights / 'metadata.json').read_text())
+    period = float(rt_meta['control_timestep'])
+    figures['realtime_family'] = rt_meta['family']
+    figures['realtime_period_ms'] = period * 1e3
+    figures.update(run_graph(rt_weights, 'realtime',
+                             lambda observer, _node: realtime_figures(
+                                 observer, args.realtime_seconds, period)))
+    figures['load_avg_end'] = os.getloadavg()[0]
+    width = max(len(k) for k in figures)
+    for key, value in figures.items():
+        text = f'{value:.3f}' if isinstance(value, float) else str(value)
+        print(f'{key:<{width}}  {text}')
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -10,14 +10,16 @@ from zeus_ros.evaluate import run_episode
 from zeus_ros.core.inference import InferenceModel
 
 FAMILY = 'walker-walk-v0'
-QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 @pytest.fixture
 def loop(spawn, ros_node, small_checkpoint):
     def start(nodes=('sim_node', 'context_node', 'policy_node'), **sim_params):
         procs = {}
-        params = {'sim_node': {'family': FAMILY, 'command_timeout': 0.3, **sim_params},
+        # A generous command timeout: a loaded CI machine must not make the sim
+        # step on its own (a zero action would break the equality test).
+        params = {'sim_node': {'family': FAMILY, 'command_timeout': 5.0, **sim_params},
                   'context_node': {'weights': small_checkpoint},
                   'policy_node': {'weights': small_checkpoint, 'context_timeout': 5.0}}
         for name in nodes:
@@ -57,7 +59,8 @@ def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpo
     episode = driver.steps[driver.current].episode
 
     def finished():
-        return any(s.episode == episode and s.truncated for s in steps)
+        return any((s.episode == episode and s.truncated) or s.episode > episode
+                   for s in steps[-5:])
     assert spin_until(ros_node, finished, 120.0), 'the episode did not finish through ROS'
     rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
     assert len(rewards) == 1000
@@ -67,7 +70,7 @@ def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpo
 
 def test_policy_killed_then_restarted(loop, ros_node, spawn, small_checkpoint):
     steps = collect(ros_node, StepInfo, '/zeus/step')
-    procs, driver = loop()
+    procs, driver = loop(command_timeout=0.3)
     wait_loop_running(ros_node, steps)
     driver.reset(seed=1)
     assert spin_until(ros_node, lambda: len(steps) > 50, 30.0)
@@ -97,7 +100,7 @@ def test_context_node_restart_refills_the_window(loop, ros_node, spawn, small_ch
     assert spin_until(ros_node, lambda: len(contexts) > mark + 10, 60.0), \
         'contexts did not resume'
     fills = [c.window_fill for c in contexts[mark:]]
-    assert fills[0] == 0 and fills[1:5] == [1, 2, 3, 4] and fills[-1] == 5
+    assert fills[0] == 0 and fills[1:5] == [1, 2, 3, 4] and fills[-1] == 5, fills
 
 
 def test_mismatched_or_missing_weights_stop_the_node(spawn, small_checkpoint):

@@ -119,13 +119,16 @@ class SimNode(Node):
                 self._configure_timer()
 
     def _configure_timer(self) -> None:
+        # Cached for the per-step callbacks (a parameter lookup per message adds up).
+        self.mode = self._param('mode')
+        self.command_timeout = self._param('command_timeout')
         if self.timer is not None:
             self.destroy_timer(self.timer)
-        if self._param('mode') == 'realtime':
+        if self.mode == 'realtime':
             period = self.env.control_timestep / self._param('real_time_factor')
             self.timer = self.create_timer(period, self.realtime_tick_callback)
         else:
-            period = min(0.05, self._param('command_timeout') / 4)
+            period = min(0.05, self.command_timeout / 4)
             self.timer = self.create_timer(period, self.lockstep_watchdog_callback)
 
     # -- stepping -------------------------------------------------------------
@@ -136,7 +139,7 @@ class SimNode(Node):
             self.warnings.warn('rejected', f'rejected command ({reason}); applying zero action '
                                    f'[{self.counters["rejected"]} rejected so far]')
             action = np.zeros(self.env.action_dim)
-        if self._param('mode') == 'realtime':
+        if self.mode == 'realtime':
             self.latest_action, self.latest_action_time = action, time.monotonic()
             return
         if stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) != self.awaited_ns:
@@ -146,16 +149,16 @@ class SimNode(Node):
         self.advance(action)
 
     def lockstep_watchdog_callback(self) -> None:
-        if self._param('mode') != 'lockstep' or self.awaited_ns is None:
+        if self.mode != 'lockstep' or self.awaited_ns is None:
             return
-        if time.monotonic() - self.awaited_since > self._param('command_timeout'):
+        if time.monotonic() - self.awaited_since > self.command_timeout:
             self.counters['timeouts'] += 1
-            self.warnings.warn('timeout', f'no command within {self._param("command_timeout")} s; '
+            self.warnings.warn('timeout', f'no command within {self.command_timeout} s; '
                                   'applying zero action')
             self.advance(np.zeros(self.env.action_dim))
 
     def realtime_tick_callback(self) -> None:
-        fresh = time.monotonic() - self.latest_action_time <= self._param('command_timeout')
+        fresh = time.monotonic() - self.latest_action_time <= self.command_timeout
         self.advance(self.latest_action if fresh else np.zeros(self.env.action_dim))
 
     def advance(self, action: np.ndarray) -> None:
@@ -205,9 +208,10 @@ class SimNode(Node):
         step.header = joint_state.header
         clock = Clock()
         clock.clock = joint_state.header.stamp
-        self.clock_pub.publish(clock)
+        # The loop's two messages first; /clock is for tools and sim-time users.
         self.step_pub.publish(step)
         self.joint_pub.publish(joint_state)
+        self.clock_pub.publish(clock)
         ends_episode = truncated or terminal
         self.awaited_ns = None if ends_episode else stamp_ns
         self.awaited_since = time.monotonic()

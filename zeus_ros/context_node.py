@@ -1,9 +1,14 @@
 """context_node: keeps the last k transitions and publishes the latent context.
 
-Subscribes /joint_states and /zeus/step (and /joint_commands, for diagnostics),
-rebuilds each transition (s, a, r, s') by stamp with the training window's
-semantics, runs psi, and publishes /zeus/context once per state, stamped with
-the state it describes, with the physical parameter decoded from the latent.
+Subscribes /joint_states and /zeus/step, rebuilds each transition (s, a, r, s')
+by stamp with the training window's semantics, runs psi, and publishes
+/zeus/context once per state, stamped with the state it describes, with the
+physical parameter decoded from the latent.
+
+It does not subscribe /joint_commands: StepInfo carries the action MuJoCo
+actually applied (after clipping, or zeros after a rejected or late command),
+which a command on the wire cannot tell, and one subscription fewer is one
+executor wake-up fewer per control step.
 """
 
 from __future__ import annotations
@@ -47,15 +52,12 @@ class ContextNode(Node):
         self.family_checked = False
         self.received_at: dict[int, float] = {}
         self.context_rate = RateMeter()    # latency: first message of a stamp -> context out
-        self.command_rate = RateMeter()
 
         self.context_pub = self.create_publisher(Context, '/zeus/context', LOOP_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(JointState, '/joint_states', self.joint_state_callback,
                                  LOOP_QOS)
         self.create_subscription(StepInfo, '/zeus/step', self.step_callback, LOOP_QOS)
-        self.create_subscription(JointState, '/joint_commands',
-                                 lambda _msg: self.command_rate.record(), LOOP_QOS)
         self.create_timer(1.0, self.diagnostics_callback)
         self.get_logger().info(f'{self.model.family} weights from {weights}: '
                                f'k={self.model.k}, latent {self.model.context_dim}')
@@ -104,8 +106,7 @@ class ContextNode(Node):
     def diagnostics_callback(self) -> None:
         values = dict(self.context_rate.report(), window_fill=self.window.fill,
                       window_k=self.window.k, dropped=self.assembler.dropped,
-                      gaps=self.assembler.gaps,
-                      commands_hz=self.command_rate.report()['rate_hz'])
+                      gaps=self.assembler.gaps)
         problem = 'messages dropped or transitions missed' if (
             self.assembler.dropped or self.assembler.gaps) else None
         self.diagnostics_pub.publish(diagnostic_array(self, 'context', self.model.family,

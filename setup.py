@@ -29,6 +29,8 @@ setup(
             'policy_node = zeus_ros.policy_node:main',
             'bringup = zeus_ros.bringup:main',
             'demo = zeus_ros.demo:main',
+            'train = zeus_ros.train:main',
+            'eval = zeus_ros.evaluate:main',
         ],
     },
 )

@@ -106,3 +106,16 @@ def test_parse_command_reorders_and_rejects():
     assert parse_command(['a', 'b'], [0], names)[0] is None
     assert parse_command(['a', 'a'], [0, 0], names)[0] is None
     assert parse_command(['a', 'b'], [0, float('nan')], names)[0] is None
+
+
+def test_instability_resets_the_episode_instead_of_crashing():
+    env = ParamEnv('walker-walk-v0', seed=0)
+    env.reset(seed=0)
+    for _ in range(10):
+        env.step(np.zeros(6))
+    env.physics.data.qvel[:] = np.nan          # what a blown-up simulation looks like
+    result = env.step(np.zeros(6))
+    assert result.instability is not None and result.truncated
+    assert env.step_count == 0                  # a fresh episode
+    assert np.all(np.isfinite(result.observation))
+    assert np.all(np.isfinite(env.step(np.zeros(6)).observation))

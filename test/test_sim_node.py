@@ -128,3 +128,20 @@ def test_unknown_family_stops_with_a_message(spawn):
     proc.proc.wait(30)
     assert proc.proc.returncode != 0
     assert "unknown family 'walker-fly-v9'" in proc.output()
+
+
+@pytest.mark.parametrize('family', ['walker-walk-v1', 'finger-spin-v0', 'cheetah-run-v1'])
+def test_every_family_runs_as_a_node(sim, family):
+    from sim_node.families import get_family
+    spec = get_family(family)
+    _, driver = sim(family=family)
+    value = spec.train[1]
+    state, info = driver.reset(seed=1, params={spec.param_name: value})
+    env = ParamEnv(family, value, seed=1)
+    env.reset(seed=1)
+    for action in actions(5, dim=env.action_dim):
+        state, info = driver.step(action, env.actuator_names)
+        expected = env.step(action)
+    assert info.family == family and list(info.param_names) == [spec.param_name]
+    assert list(info.param_values) == [value] and info.reward == expected.reward
+    np.testing.assert_array_equal(state.position, env.joint_positions())

@@ -1,0 +1,95 @@
+"""Copy a run's deployable weights into weights/ with their evaluation record.
+
+    python scripts/ship_weights.py runs/walker-walk-v0-zeus weights/walker-walk-v0-zeus \
+        --command "python -m zeus_ros.train ..." --episodes 2
+
+Copies model.safetensors and metadata.json (what the nodes load; the training
+state with the replay buffer stays in the run), evaluates the checkpoint on the
+train, interpolation and extrapolation values with `zeus_ros.evaluate` and
+writes RECORD.md and record.json beside the weights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+import shutil
+import time
+
+import numpy as np
+
+from sim_node.families import get_family, SPLITS
+from zeus_ros.core.inference import InferenceModel
+from zeus_ros.evaluate import evaluate
+
+SHIPPED = ('model.safetensors', 'metadata.json')
+
+
+def training_wall_time(run: Path) -> float | None:
+    """Training wall time in seconds from the run's train_log.csv (last row)."""
+    log = run / 'train_log.csv'
+    if not log.exists():
+        return None
+    with open(log, newline='') as handle:
+        rows = list(csv.DictReader(handle))
+    return float(rows[-1]['wall_s']) if rows else None
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('run', type=Path)
+    parser.add_argument('dest', type=Path)
+    parser.add_argument('--command', required=True, help='the training command, verbatim')
+    parser.add_argument('--episodes', type=int, default=2, help='evaluation episodes per value')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--note', default='', help='a line for the record')
+    args = parser.parse_args(argv)
+    args.dest.mkdir(parents=True, exist_ok=True)
+    for name in SHIPPED:
+        shutil.copyfile(args.run / 'checkpoint' / name, args.dest / name)
+    model = InferenceModel.load(args.dest)
+    spec = get_family(model.family)
+    started = time.monotonic()
+    results = {split: evaluate(model, spec.split(split), args.episodes, args.seed)
+               for split in SPLITS if spec.split(split)}
+    meta = model.metadata
+    record = {
+        'family': model.family, 'command': args.command, 'seed': meta['config'].get('seed'),
+        'steps': meta['steps'], 'training_wall_s': training_wall_time(args.run),
+        'alpha_psi': meta['config'].get('alpha_psi'), 'git_commit': meta.get('git_commit'),
+        'eval_episodes_per_value': args.episodes, 'eval_seed': args.seed,
+        'eval_wall_s': time.monotonic() - started, 'results': results,
+        'size_bytes': {n: (args.dest / n).stat().st_size for n in SHIPPED},
+        'note': args.note,
+    }
+    (args.dest / 'record.json').write_text(json.dumps(record, indent=2))
+    lines = [f'# {args.dest.name}', '', f'- family: `{model.family}` '
+             f'({spec.param_name}), alpha_psi = {record["alpha_psi"]}',
+             f'- command: `{args.command}`',
+             f'- steps: {meta["steps"]}',
+             f'- training wall time: {record["training_wall_s"]:.0f} s on a 2-core CPU'
+             if record['training_wall_s'] else '- training wall time: unknown',
+             '- files: ' + ', '.join(f'{n} ({s / 1e3:.0f} kB)'
+                                      for n, s in record['size_bytes'].items()),
+             f'- evaluation: `zeus_ros.evaluate`, deterministic policy, {args.episodes} '
+             f'episode(s) per value, seeds {args.seed}..{args.seed + args.episodes - 1}', '']
+    if args.note:
+        lines += [args.note, '']
+    lines += ['| split | value | mean return | std | mean decoded estimate |',
+              '|---|---|---|---|---|']
+    for split, rows in results.items():
+        for row in rows:
+            lines.append(f'| {split} | {row["value"]:g} | {row["mean_return"]:.1f} | '
+                         f'{row["std_return"]:.1f} | {row["mean_estimate"]:.3f} |')
+    lines += ['', '| split | mean return over values |', '|---|---|']
+    for split, rows in results.items():
+        lines.append(f'| {split} | {np.mean([r["mean_return"] for r in rows]):.1f} |')
+    (args.dest / 'RECORD.md').write_text('\n'.join(lines) + '\n')
+    print('\n'.join(lines))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -15,8 +15,6 @@ import time
 
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, SetParametersResult
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from diagnostic_msgs.msg import DiagnosticArray
@@ -29,7 +27,8 @@ from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
 from sim_node.protocol import ns_to_stamp, parse_command, stamp_to_ns
 from zeus_ros.ros_util import describe as _describe
-from zeus_ros.ros_util import diagnostic_array, LOOP_QOS as STATE_QOS, RateMeter, ThrottledWarnings
+from zeus_ros.ros_util import (diagnostic_array, LOOP_QOS as STATE_QOS, RateMeter, run_node,
+                               ThrottledWarnings)
 
 MODES = ('lockstep', 'realtime')
 
@@ -259,21 +258,9 @@ class SimNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as error:  # a bad family or initial parameter: say which, exit 1
-        print(f'sim_node: {error}', file=sys.stderr)
-        return 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    # A bad family or initial parameter value: say which and exit with code 1.
+    return run_node(SimNode, args, fatal=(ValueError,))
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

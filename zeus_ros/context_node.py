@@ -16,8 +16,6 @@ from __future__ import annotations
 import sys
 import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
@@ -27,11 +25,25 @@ from zeus_ros.checkpoint import CheckpointError
 from zeus_ros.core.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
 from zeus_ros.pairing import layout_from_metadata, TransitionAssembler
-from zeus_ros.ros_util import describe, diagnostic_array, LOOP_QOS, RateMeter, stamp_ns
+from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
+                               stamp_ns)
 
 
 class GraphMismatch(RuntimeError):
     """The running simulation is not the one the weights were trained for."""
+
+
+def load_weights_parameter(node: Node) -> InferenceModel:
+    """Declare the read-only `weights` parameter and load the checkpoint it names."""
+    weights = node.declare_parameter('weights', '', describe(
+        'Checkpoint directory (safetensors + metadata.json); read-only.',
+        read_only=True)).value
+    if not weights:
+        raise CheckpointError('parameter "weights" is empty: pass -p weights:=<checkpoint>')
+    model = InferenceModel.load(weights)
+    node.get_logger().info(f'{model.family} weights from {weights}: k={model.k}, '
+                           f'latent {model.context_dim}')
+    return model
 
 
 class ContextNode(Node):
@@ -39,12 +51,7 @@ class ContextNode(Node):
 
     def __init__(self):
         super().__init__('context_node')
-        weights = self.declare_parameter('weights', '', describe(
-            'Checkpoint directory (safetensors + metadata.json); read-only.',
-            read_only=True)).value
-        if not weights:
-            raise CheckpointError('parameter "weights" is empty: pass -p weights:=<checkpoint>')
-        self.model = InferenceModel.load(weights)
+        self.model = load_weights_parameter(self)
         self.window = ContextWindow(self.model.k, self.model.obs_dim, self.model.action_dim)
         self.assembler = TransitionAssembler(self.window,
                                              layout_from_metadata(self.model.metadata))
@@ -59,8 +66,6 @@ class ContextNode(Node):
                                  LOOP_QOS)
         self.create_subscription(StepInfo, '/zeus/step', self.step_callback, LOOP_QOS)
         self.create_timer(1.0, self.diagnostics_callback)
-        self.get_logger().info(f'{self.model.family} weights from {weights}: '
-                               f'k={self.model.k}, latent {self.model.context_dim}')
 
     def joint_state_callback(self, msg: JointState) -> None:
         stamp = self._note(msg.header)
@@ -113,27 +118,8 @@ class ContextNode(Node):
                                                       values, problem))
 
 
-def run_node(node_class, args=None) -> int:
-    """Spin one node; a bad checkpoint or a mismatched graph ends it with exit code 1."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = node_class()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (CheckpointError, GraphMismatch) as error:
-        print(f'{node_class.__name__}: {error}', file=sys.stderr)
-        return 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
-
-
 def main(args=None):
-    return run_node(ContextNode, args)
+    return run_node(ContextNode, args, fatal=(CheckpointError, GraphMismatch))
 
 
 if __name__ == '__main__':

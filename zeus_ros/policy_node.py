@@ -20,11 +20,10 @@ from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context
 
 from zeus_ros.checkpoint import CheckpointError
-from zeus_ros.context_node import GraphMismatch, run_node
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.context_node import GraphMismatch, load_weights_parameter
 from zeus_ros.pairing import layout_from_metadata, StateContextPairer
-from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, stamp_ns,
-                               ThrottledWarnings)
+from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
+                               stamp_ns, ThrottledWarnings)
 
 
 class PolicyNode(Node):
@@ -32,15 +31,10 @@ class PolicyNode(Node):
 
     def __init__(self):
         super().__init__('policy_node')
-        weights = self.declare_parameter('weights', '', describe(
-            'Checkpoint directory (safetensors + metadata.json); read-only.',
-            read_only=True)).value
+        self.model = load_weights_parameter(self)
         timeout = self.declare_parameter('context_timeout', 0.5, describe(
             'Seconds a state waits for its context before a zero action is sent.',
             floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)])).value
-        if not weights:
-            raise CheckpointError('parameter "weights" is empty: pass -p weights:=<checkpoint>')
-        self.model = InferenceModel.load(weights)
         self.layout = layout_from_metadata(self.model.metadata)
         self.actuator_names = list(self.model.metadata['action_layout']['actuator_names'])
         self.zero_action = np.zeros(self.model.action_dim)
@@ -58,7 +52,6 @@ class PolicyNode(Node):
         self.create_timer(max(timeout / 4, 0.005), self.timeout_callback)
         self.create_timer(1.0, self.diagnostics_callback)
         self.add_post_set_parameters_callback(self.parameters_callback)
-        self.get_logger().info(f'{self.model.family} policy from {weights}')
 
     def parameters_callback(self, params) -> None:
         for param in params:
@@ -129,7 +122,7 @@ class PolicyNode(Node):
 
 
 def main(args=None):
-    return run_node(PolicyNode, args)
+    return run_node(PolicyNode, args, fatal=(CheckpointError, GraphMismatch))
 
 
 if __name__ == '__main__':

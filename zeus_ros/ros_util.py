@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
+import rclpy
+from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 # Reliable, keep-last 10, volatile on every topic of the loop. Lockstep needs
@@ -73,3 +76,22 @@ class RateMeter:
                   'total': self.total}
         self.count, self.latency_sum, self._since = 0, 0.0, now
         return values
+
+
+def run_node(node_class, args=None, fatal: tuple = ()) -> int:
+    """Spin one node until Ctrl-C or shutdown; a `fatal` error ends it with exit code 1."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_class()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except fatal as error:
+        print(f'{node_class.__name__}: {error}', file=sys.stderr)
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

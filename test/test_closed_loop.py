@@ -1,6 +1,6 @@
 """The three nodes on real DDS are the trained agent: equal returns, faults survived."""
 
-from conftest import installed_exe, spin_until
+from conftest import installed_exe, REPO, spin_until
 import numpy as np
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -10,18 +10,20 @@ from zeus_ros.evaluate import run_episode
 from zeus_ros.core.inference import InferenceModel
 
 FAMILY = 'walker-walk-v0'
+WALKER_WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
 QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 @pytest.fixture
 def loop(spawn, ros_node, small_checkpoint):
-    def start(nodes=('sim_node', 'context_node', 'policy_node'), **sim_params):
+    def start(nodes=('sim_node', 'context_node', 'policy_node'), weights=small_checkpoint,
+              **sim_params):
         procs = {}
         # A generous command timeout: a loaded CI machine must not make the sim
         # step on its own (a zero action would break the equality test).
         params = {'sim_node': {'family': FAMILY, 'command_timeout': 5.0, **sim_params},
-                  'context_node': {'weights': small_checkpoint},
-                  'policy_node': {'weights': small_checkpoint, 'context_timeout': 5.0}}
+                  'context_node': {'weights': weights},
+                  'policy_node': {'weights': weights, 'context_timeout': 5.0}}
         for name in nodes:
             procs[name] = start_node(spawn, name, params[name])
         driver = LockstepDriver(ros_node)
@@ -49,11 +51,13 @@ def wait_loop_running(ros_node, steps, timeout=60.0):
                       timeout), 'the loop never closed (no non-zero action applied)'
 
 
-def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpoint):
+@pytest.mark.parametrize('which', ['small_checkpoint', 'shipped_walker_weights'])
+def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpoint, which):
+    weights = small_checkpoint if which == 'small_checkpoint' else WALKER_WEIGHTS
     seed, friction = 5, 1.25
-    expected = run_episode(InferenceModel.load(small_checkpoint), FAMILY, friction, seed)
+    expected = run_episode(InferenceModel.load(weights), FAMILY, friction, seed)
     steps = collect(ros_node, StepInfo, '/zeus/step')
-    _, driver = loop()
+    _, driver = loop(weights=weights)
     wait_loop_running(ros_node, steps)
     driver.reset(seed=seed, params={'friction': friction})
     episode = driver.steps[driver.current].episode

@@ -157,7 +157,9 @@ class SimNode(Node):
             self.advance(np.zeros(self.env.action_dim))
 
     def realtime_tick_callback(self) -> None:
-        fresh = time.monotonic() - self.latest_action_time <= self.command_timeout
+        age = time.monotonic() - self.latest_action_time
+        fresh = age <= self.command_timeout
+        self.step_rate.record(age if fresh else 0.0)  # latency here: age of the command used
         self.advance(self.latest_action if fresh else np.zeros(self.env.action_dim))
 
     def advance(self, action: np.ndarray) -> None:

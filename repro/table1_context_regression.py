@@ -90,9 +90,9 @@ def fit(x_tr, y_tr, x_te, y_te, epochs: int, seed: int):
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--families', nargs='*', default=list(PAPER))
-    p.add_argument('--episodes', type=int, default=6, help='per train value (2/3 for training)')
-    p.add_argument('--steps', type=int, default=250, help='steps per episode')
-    p.add_argument('--epochs', type=int, default=40)
+    p.add_argument('--episodes', type=int, default=24, help='per train value (2/3 for training)')
+    p.add_argument('--steps', type=int, default=200, help='steps per episode')
+    p.add_argument('--epochs', type=int, default=30)
     p.add_argument('--k', type=int, default=5)
     p.add_argument('--seed', type=int, default=0)
     args = p.parse_args(argv)

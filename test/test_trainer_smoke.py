@@ -75,6 +75,12 @@ def test_run_episode_order_and_determinism(run_dir):
                               swap_schedule={10: 0.2})
     assert r3.param_values[9] == 0.1 and r3.param_values[10] == 0.2
     np.testing.assert_array_equal(r3.actions[:10], r1.actions[:10])
+    # inference pins torch to one thread even if the process asked for more
+    import torch
+    torch.set_num_threads(2)
+    r4 = evaluate.run_episode(model, FAMILY, 0.1, seed=4, max_steps=25)
+    assert torch.get_num_threads() == 1
+    np.testing.assert_array_equal(r4.actions, r1.actions)
 
 
 def test_resume_continues_from_checkpoint(run_dir, capsys):

@@ -64,12 +64,18 @@ def sha256_file(path: Path) -> str:
 
 
 def git_commit(repo: Path | None = None) -> str:
-    """HEAD commit of the source tree, or 'unknown'."""
+    """HEAD commit of the source tree ('-dirty' if the learning code is modified), or 'unknown'."""
     repo = repo or Path(__file__).resolve().parents[1]
     try:
         out = subprocess.run(['git', '-C', str(repo), 'rev-parse', 'HEAD'],
                              capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() or 'unknown'
+        sha = out.stdout.strip()
+        if not sha:
+            return 'unknown'
+        dirty = subprocess.run(['git', '-C', str(repo), 'status', '--porcelain', '--',
+                                'zeus_ros', 'sim_node'], capture_output=True, text=True,
+                               timeout=5).stdout.strip()
+        return f'{sha}-dirty' if dirty else sha
     except (OSError, subprocess.SubprocessError):
         return 'unknown'
 

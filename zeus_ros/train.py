@@ -72,8 +72,9 @@ def evaluate_agent(agent: ZeusAgent, family: str, values, episodes: int = 1, see
     if not jobs:
         return {}
     envs = [ParamEnv(family, v, seed=None, episode_steps=steps) for v, _ in jobs]
-    obs = [env.reset(seed=10_000 + 100 * seed + e) for env, (_, e) in zip(envs, jobs,
-                                                                         strict=True)]
+    # A different start state per job: one seed for every value would make the
+    # whole evaluation hinge on a single (possibly unlucky) initial pose.
+    obs = [env.reset(seed=10_000 + 1000 * seed + j) for j, env in enumerate(envs)]
     windows = [ContextWindow(cfg.context_length, env.obs_dim, env.action_dim) for env in envs]
     returns = np.zeros(len(jobs))
     active = np.ones(len(jobs), bool)

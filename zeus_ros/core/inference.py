@@ -8,7 +8,9 @@
 Everything runs with batch size 1 and one torch thread (set on load:
 ``torch.set_num_threads(1)`` is process-wide), in float32, so the in-process
 evaluation and the ROS nodes, which pass the latent between them as float32,
-compute bit-identical actions for the same observations and windows.
+compute bit-identical actions for the same observations and windows. (With two
+threads the same episode's actions differ in the last bits, so every call
+re-asserts one thread if something else in the process changed it.)
 """
 
 from __future__ import annotations
@@ -19,6 +21,12 @@ import numpy as np
 import torch
 
 from zeus_ros.checkpoint import load_model
+
+
+def _single_thread() -> None:
+    """Keep torch on one intra-op thread: with more, reductions may split differently."""
+    if torch.get_num_threads() != 1:
+        torch.set_num_threads(1)
 
 
 class InferenceModel:
@@ -51,6 +59,7 @@ class InferenceModel:
     @torch.no_grad()
     def context(self, rows: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Latent context psi(H) of one window (rows [k, row_dim], mask [k]) as float32."""
+        _single_thread()
         rows = np.asarray(rows, dtype=np.float32)
         mask = np.asarray(mask, dtype=bool)
         if rows.shape != (self.k, self.row_dim) or mask.shape != (self.k,):
@@ -62,6 +71,7 @@ class InferenceModel:
     @torch.no_grad()
     def act(self, obs: np.ndarray, latent: np.ndarray) -> np.ndarray:
         """Deterministic action tanh(mu) in [-1, 1] as float64."""
+        _single_thread()
         obs = np.asarray(obs, dtype=np.float32).reshape(-1)
         latent = np.asarray(latent, dtype=np.float32).reshape(-1)
         if obs.shape != (self.obs_dim,) or latent.shape != (self.context_dim,):
@@ -76,6 +86,7 @@ class InferenceModel:
         """Physical-parameter estimate read from a latent (NaN without a decoder)."""
         if self.decoder is None:
             return math.nan
+        _single_thread()
         latent = np.asarray(latent, dtype=np.float32).reshape(1, -1)
         value = float(self.decoder(torch.from_numpy(latent))[0])
         return value * self.param_scale + self.param_offset

@@ -35,6 +35,13 @@ def smooth(values: np.ndarray, width: int) -> np.ndarray:
     return np.convolve(values, np.ones(width) / width, mode='valid')
 
 
+def save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def learning_curves(runs: list[Path], out: Path) -> Path:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for run in runs:
@@ -62,11 +69,7 @@ def learning_curves(runs: list[Path], out: Path) -> Path:
         ax.set_xlabel('environment steps (all tasks)')
         ax.set_ylabel('episode return')
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = out / 'learning_curves.png'
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save(fig, out / 'learning_curves.png')
 
 
 def final_eval(runs: list[Path], out: Path) -> Path:
@@ -85,11 +88,7 @@ def final_eval(runs: list[Path], out: Path) -> Path:
     ax.set_xticks(np.arange(len(labels)) + width * (len(runs) - 1) / 2, labels, fontsize=7)
     ax.set_ylabel('return (last evaluation)')
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / 'final_eval_per_value.png'
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save(fig, out / 'final_eval_per_value.png')
 
 
 def main(argv=None) -> int:

@@ -25,10 +25,10 @@ from zeus_msgs.srv import Reset
 
 from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
-from sim_node.protocol import ns_to_stamp, parse_command, stamp_to_ns
+from sim_node.protocol import parse_command
 from zeus_ros.ros_util import describe as _describe
 from zeus_ros.ros_util import (diagnostic_array, LOOP_QOS as STATE_QOS, RateMeter, run_node,
-                               ThrottledWarnings)
+                               set_stamp, stamp_ns, ThrottledWarnings)
 
 MODES = ('lockstep', 'realtime')
 
@@ -141,7 +141,7 @@ class SimNode(Node):
         if self.mode == 'realtime':
             self.latest_action, self.latest_action_time = action, time.monotonic()
             return
-        if stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) != self.awaited_ns:
+        if stamp_ns(msg.header) != self.awaited_ns:
             self.counters['stale'] += 1
             return
         self.step_rate.record(time.monotonic() - self.awaited_since)
@@ -194,12 +194,11 @@ class SimNode(Node):
     def publish_state(self, reward: float, truncated: bool, terminal: bool = False,
                       applied_action: np.ndarray | None = None) -> None:
         self.tick += 1
-        stamp_ns = self.tick * self.dt_ns
-        sec, nanosec = ns_to_stamp(stamp_ns)
+        stamp = self.tick * self.dt_ns
         joint_state = JointState(name=list(self.env.joint_names),
                                  position=self.env.joint_positions().tolist(),
                                  velocity=self.env.joint_velocities().tolist())
-        joint_state.header.stamp.sec, joint_state.header.stamp.nanosec = sec, nanosec
+        set_stamp(joint_state.header, stamp)
         step = StepInfo(episode=self.episode, step=self.env.step_count, reward=float(reward),
                         terminal=bool(terminal), truncated=bool(truncated),
                         applied_action=[] if applied_action is None
@@ -214,7 +213,7 @@ class SimNode(Node):
         self.joint_pub.publish(joint_state)
         self.clock_pub.publish(clock)
         ends_episode = truncated or terminal
-        self.awaited_ns = None if ends_episode else stamp_ns
+        self.awaited_ns = None if ends_episode else stamp
         self.awaited_since = time.monotonic()
 
     # -- service ----------------------------------------------------------------

@@ -9,12 +9,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
+from zeus_ros.ros_util import stamp_ns as stamp_key
 
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
 
-def stamp_key(header) -> int:
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
 
 
 class LockstepDriver:

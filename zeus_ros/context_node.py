@@ -26,7 +26,7 @@ from zeus_ros.core.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
 from zeus_ros.pairing import layout_from_metadata, TransitionAssembler
 from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
-                               stamp_ns)
+                               set_stamp, stamp_ns)
 
 
 class GraphMismatch(RuntimeError):
@@ -101,7 +101,7 @@ class ContextNode(Node):
         msg = Context(latent=latent.tolist(), window_fill=self.window.fill,
                       param_names=[self.param_name],
                       param_estimates=[self.model.decode(latent)])
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(record.stamp_ns, 1_000_000_000)
+        set_stamp(msg.header, record.stamp_ns)
         self.context_pub.publish(msg)
         first_seen = self.received_at.pop(record.stamp_ns, time.monotonic())
         self.context_rate.record(time.monotonic() - first_seen)

@@ -23,7 +23,7 @@ from zeus_ros.checkpoint import CheckpointError
 from zeus_ros.context_node import GraphMismatch, load_weights_parameter
 from zeus_ros.pairing import layout_from_metadata, StateContextPairer
 from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
-                               stamp_ns, ThrottledWarnings)
+                               set_stamp, stamp_ns, ThrottledWarnings)
 
 
 class PolicyNode(Node):
@@ -105,7 +105,7 @@ class PolicyNode(Node):
 
     def publish_command(self, stamp: int, action: np.ndarray) -> None:
         msg = JointState(name=self.actuator_names, effort=action.tolist())
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        set_stamp(msg.header, stamp)
         self.command_pub.publish(msg)
         received = self.received_at.pop(stamp, time.monotonic())
         self.action_rate.record(time.monotonic() - received)

@@ -10,6 +10,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sim_node.protocol import ns_to_stamp, stamp_to_ns
 
 # Reliable, keep-last 10, volatile on every topic of the loop. Lockstep needs
 # reliability (a lost state or command stalls a step until the timeout and
@@ -21,7 +22,12 @@ LOOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 
 def stamp_ns(header) -> int:
     """Return a header's stamp as integer nanoseconds."""
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+    return stamp_to_ns(header.stamp.sec, header.stamp.nanosec)
+
+
+def set_stamp(header, ns: int) -> None:
+    """Set a header's stamp from integer nanoseconds."""
+    header.stamp.sec, header.stamp.nanosec = ns_to_stamp(ns)
 
 
 def describe(text: str, read_only: bool = False, **ranges) -> ParameterDescriptor:

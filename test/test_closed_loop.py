@@ -104,7 +104,11 @@ def test_context_node_restart_refills_the_window(loop, ros_node, spawn, small_ch
     assert spin_until(ros_node, lambda: len(contexts) > mark + 10, 60.0), \
         'contexts did not resume'
     fills = [c.window_fill for c in contexts[mark:]]
-    assert fills[0] == 0 and fills[1:5] == [1, 2, 3, 4] and fills[-1] == 5, fills
+    # The new node starts from an empty window and refills one transition per
+    # step up to k. Its very first context may go out before this test's
+    # subscription has matched the new publisher, so start from what arrived.
+    assert fills[0] <= 1, fills
+    assert fills == [min(fills[0] + i, 5) for i in range(len(fills))], fills
 
 
 def test_mismatched_or_missing_weights_stop_the_node(spawn, small_checkpoint):

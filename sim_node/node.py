@@ -2,8 +2,10 @@
 
 Publishes /joint_states, /zeus/step and /clock; steps on /joint_commands.
 In `lockstep` mode every published state waits for the command that answers
-its stamp (zero action after `command_timeout`); in `realtime` mode a timer
-steps at the control rate times `real_time_factor` on the latest command.
+its stamp (zero action after `command_timeout`); in `realtime` mode the node
+steps on an absolute tick schedule at the control rate times
+`real_time_factor`, on the latest command. Both the tick and the lockstep
+watchdog are the loop deadline that `zeus_ros.loop_spin.spin_loop` waits for.
 The family's physical parameter is a ROS parameter: setting it puts the new
 physics into force at the next step boundary, the robot's state carried over.
 """
@@ -26,9 +28,10 @@ from zeus_msgs.srv import Reset
 from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
 from sim_node.protocol import parse_command
+from zeus_ros.loop_spin import create_loop_subscription
 from zeus_ros.ros_util import describe as _describe
 from zeus_ros.ros_util import (diagnostic_array, LOOP_QOS as STATE_QOS, RateMeter, run_node,
-                               set_stamp, stamp_ns, ThrottledWarnings)
+                               set_stamp, stamp_ns, ThrottledWarnings, TickLateness)
 
 MODES = ('lockstep', 'realtime')
 
@@ -47,7 +50,8 @@ class SimNode(Node):
             'Seed of the random stream for initial states; a change applies at the next reset.',
             integer_range=[IntegerRange(from_value=0, to_value=2**31 - 1, step=1)]))
         self.declare_parameter('mode', 'lockstep', _describe(
-            'lockstep: wait for the command answering each state; realtime: step on a timer.'))
+            'lockstep: wait for the command answering each state; realtime: step on a fixed '
+            'schedule at the control rate times real_time_factor.'))
         self.declare_parameter('real_time_factor', 1.0, _describe(
             'realtime mode: simulated seconds per wall-clock second.',
             floating_point_range=[FloatingPointRange(from_value=0.01, to_value=100.0)]))
@@ -73,17 +77,18 @@ class SimNode(Node):
         self.counters = {'rejected': 0, 'stale': 0, 'timeouts': 0, 'instabilities': 0}
         self.warnings = ThrottledWarnings(self.get_logger())
         self.step_rate = RateMeter()  # steps/s; latency = state published -> command in
+        self.tick_lateness = TickLateness()  # realtime: tick start - scheduled time
+        self.next_tick = 0.0
 
         self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
         self.step_pub = self.create_publisher(StepInfo, '/zeus/step', STATE_QOS)
         self.clock_pub = self.create_publisher(Clock, '/clock', STATE_QOS)
-        self.create_subscription(JointState, '/joint_commands', self.command_callback,
+        create_loop_subscription(self, JointState, '/joint_commands', self.command_callback,
                                  STATE_QOS)
         self.create_service(Reset, '~/reset', self.reset_callback)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(1.0, self.diagnostics_callback)
-        self.timer = None
-        self._configure_timer()
+        self._configure_stepping()
         self.env.reset(seed=self._param('seed'))
         self.get_logger().info(
             f'{family}: {self.spec.param_name}={self.env.param_value:g}, '
@@ -115,20 +120,22 @@ class SimNode(Node):
             if param.name == self.spec.param_name:
                 self.pending_value = float(param.value)
             elif param.name in ('mode', 'real_time_factor', 'command_timeout'):
-                self._configure_timer()
+                self._configure_stepping()
 
-    def _configure_timer(self) -> None:
+    def _configure_stepping(self) -> None:
         # Cached for the per-step callbacks (a parameter lookup per message adds up).
         self.mode = self._param('mode')
         self.command_timeout = self._param('command_timeout')
-        if self.timer is not None:
-            self.destroy_timer(self.timer)
+        self.tick_period = self.env.control_timestep / self._param('real_time_factor')
+        self.next_tick = time.monotonic() + self.tick_period
+
+    def loop_deadline(self):
+        """Return when the node must act without a message: (monotonic time, callback)."""
         if self.mode == 'realtime':
-            period = self.env.control_timestep / self._param('real_time_factor')
-            self.timer = self.create_timer(period, self.realtime_tick_callback)
-        else:
-            period = min(0.05, self.command_timeout / 4)
-            self.timer = self.create_timer(period, self.lockstep_watchdog_callback)
+            return self.next_tick, self.realtime_tick_callback
+        if self.awaited_ns is not None:
+            return self.awaited_since + self.command_timeout, self.lockstep_timeout_callback
+        return None
 
     # -- stepping -------------------------------------------------------------
     def command_callback(self, msg: JointState) -> None:
@@ -147,17 +154,21 @@ class SimNode(Node):
         self.step_rate.record(time.monotonic() - self.awaited_since)
         self.advance(action)
 
-    def lockstep_watchdog_callback(self) -> None:
-        if self.mode != 'lockstep' or self.awaited_ns is None:
-            return
-        if time.monotonic() - self.awaited_since > self.command_timeout:
-            self.counters['timeouts'] += 1
-            self.warnings.warn('timeout', f'no command within {self.command_timeout} s; '
-                                  'applying zero action')
-            self.advance(np.zeros(self.env.action_dim))
+    def lockstep_timeout_callback(self) -> None:
+        self.counters['timeouts'] += 1
+        self.warnings.warn('timeout', f'no command within {self.command_timeout} s; '
+                              'applying zero action')
+        self.advance(np.zeros(self.env.action_dim))
 
     def realtime_tick_callback(self) -> None:
-        age = time.monotonic() - self.latest_action_time
+        now = time.monotonic()
+        # Ticks stay on an absolute schedule (no drift); a tick more than a
+        # period late is a missed deadline, and the schedule restarts from now.
+        self.tick_lateness.record(now - self.next_tick, self.tick_period)
+        self.next_tick += self.tick_period
+        if self.next_tick <= now:
+            self.next_tick = now + self.tick_period
+        age = now - self.latest_action_time
         fresh = age <= self.command_timeout
         self.step_rate.record(age if fresh else 0.0)  # latency here: age of the command used
         self.advance(self.latest_action if fresh else np.zeros(self.env.action_dim))
@@ -252,7 +263,7 @@ class SimNode(Node):
         problems = self.counters['rejected'] + self.counters['instabilities']
         values = dict(self.counters, episode=self.episode, step=self.env.step_count,
                       mode=self._param('mode'), **{self.spec.param_name: self.env.param_value},
-                      **self.step_rate.report())
+                      **self.step_rate.report(), **self.tick_lateness.report())
         self.diagnostics_pub.publish(diagnostic_array(
             self, 'simulation', self.spec.name, values,
             'bad commands or instabilities seen' if problems else None))

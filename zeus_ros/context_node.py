@@ -24,6 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from zeus_ros.checkpoint import CheckpointError
 from zeus_ros.core.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
+from zeus_ros.loop_spin import create_loop_subscription
 from zeus_ros.pairing import layout_from_metadata, TransitionAssembler
 from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns)
@@ -62,9 +63,9 @@ class ContextNode(Node):
 
         self.context_pub = self.create_publisher(Context, '/zeus/context', LOOP_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(JointState, '/joint_states', self.joint_state_callback,
+        create_loop_subscription(self, JointState, '/joint_states', self.joint_state_callback,
                                  LOOP_QOS)
-        self.create_subscription(StepInfo, '/zeus/step', self.step_callback, LOOP_QOS)
+        create_loop_subscription(self, StepInfo, '/zeus/step', self.step_callback, LOOP_QOS)
         self.create_timer(1.0, self.diagnostics_callback)
 
     def joint_state_callback(self, msg: JointState) -> None:

@@ -126,7 +126,7 @@ class StateContextPairer:
         self._trim()
 
     def ready(self) -> tuple[int, np.ndarray, np.ndarray] | None:
-        """Newest state whose context is in: (stamp, observation, latent), or None."""
+        """Newest state whose context is in: (stamp, what `add_state` got, latent), or None."""
         complete = [s for s in self._states if s in self._contexts]
         if not complete:
             return None
@@ -135,6 +135,12 @@ class StateContextPairer:
         latent = self._contexts[stamp]
         self._answered(stamp)
         return stamp, observation, latent
+
+    def next_expiry(self) -> float | None:
+        """When the oldest waiting state runs out of time for its context (or None)."""
+        if not self._states:
+            return None
+        return min(t for _, t in self._states.values()) + self.context_timeout
 
     def expired(self, now: float) -> int | None:
         """Newest state that waited past the timeout for its context, or None."""

@@ -2,7 +2,8 @@
 
 Subscribes /joint_states and /zeus/context; when the state and the context of
 one stamp are both in, publishes the deterministic (mean) action on
-/joint_commands with that stamp and the actuator names. It answers the newest
+/joint_commands with that stamp and the actuator names. phi(s) is computed
+as soon as the state arrives, while the context node works on its latent. It answers the newest
 complete pair (in realtime mode older states are skipped); a state whose
 context has not come within `context_timeout` gets a zero action and a warning.
 """
@@ -21,6 +22,7 @@ from zeus_msgs.msg import Context
 
 from zeus_ros.checkpoint import CheckpointError
 from zeus_ros.context_node import GraphMismatch, load_weights_parameter
+from zeus_ros.loop_spin import create_loop_subscription
 from zeus_ros.pairing import layout_from_metadata, StateContextPairer
 from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
@@ -46,10 +48,9 @@ class PolicyNode(Node):
 
         self.command_pub = self.create_publisher(JointState, '/joint_commands', LOOP_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(JointState, '/joint_states', self.joint_state_callback,
+        create_loop_subscription(self, JointState, '/joint_states', self.joint_state_callback,
                                  LOOP_QOS)
-        self.create_subscription(Context, '/zeus/context', self.context_callback, LOOP_QOS)
-        self.create_timer(max(timeout / 4, 0.005), self.timeout_callback)
+        create_loop_subscription(self, Context, '/zeus/context', self.context_callback, LOOP_QOS)
         self.create_timer(1.0, self.diagnostics_callback)
         self.add_post_set_parameters_callback(self.parameters_callback)
 
@@ -68,7 +69,7 @@ class PolicyNode(Node):
         stamp = stamp_ns(msg.header)
         now = time.monotonic()
         self.received_at[stamp] = now
-        self.pairer.add_state(stamp, obs, now)
+        self.pairer.add_state(stamp, self.model.features(obs), now)
         self.act_on_ready()
 
     def context_callback(self, msg: Context) -> None:
@@ -85,14 +86,19 @@ class PolicyNode(Node):
         ready = self.pairer.ready()
         if ready is None:
             return
-        stamp, obs, latent = ready
-        action = self.model.act(obs, latent)
+        stamp, features, latent = ready
+        action = self.model.act_on_features(features, latent)
         if not np.all(np.isfinite(action)):
             self.counters['non_finite_actions'] += 1
             self.warnings.warn('nonfinite', 'the policy produced a non-finite action; '
                                             'sending zeros')
             action = self.zero_action
         self.publish_command(stamp, np.clip(action, -1.0, 1.0))
+
+    def loop_deadline(self):
+        """Return when the oldest waiting state's context times out: (time, callback)."""
+        expiry = self.pairer.next_expiry()
+        return None if expiry is None else (expiry, self.timeout_callback)
 
     def timeout_callback(self) -> None:
         stamp = self.pairer.expired(time.monotonic())

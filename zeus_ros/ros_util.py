@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import sys
 import time
 
@@ -11,6 +12,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sim_node.protocol import ns_to_stamp, stamp_to_ns
+from zeus_ros.loop_spin import spin_loop
 
 # Reliable, keep-last 10, volatile on every topic of the loop. Lockstep needs
 # reliability (a lost state or command stalls a step until the timeout and
@@ -84,13 +86,42 @@ class RateMeter:
         return values
 
 
+class TickLateness:
+    """How late scheduled ticks started, over the last reporting period, and missed ones."""
+
+    def __init__(self):
+        self.lateness: list[float] = []
+        self.missed = 0
+
+    def record(self, late_s: float, period_s: float) -> None:
+        self.lateness.append(late_s)
+        if late_s > period_s:
+            self.missed += 1
+
+    def report(self) -> dict:
+        if not self.lateness:
+            return {}
+        ordered = sorted(self.lateness)
+        p99 = ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]
+        self.lateness = []
+        return {'tick_late_ms_p99': f'{1e3 * p99:.3f}',
+                'tick_late_ms_max': f'{1e3 * ordered[-1]:.3f}', 'missed_ticks': self.missed}
+
+
 def run_node(node_class, args=None, fatal: tuple = ()) -> int:
-    """Spin one node until Ctrl-C or shutdown; a `fatal` error ends it with exit code 1."""
+    """Spin one node with `spin_loop` until Ctrl-C or shutdown.
+
+    A `fatal` error ends it with exit code 1 and the error on stderr.
+    """
     rclpy.init(args=args)
     node = None
     try:
         node = node_class()
-        rclpy.spin(node)
+        # Everything built so far (modules, weights, the node) lives for the
+        # process: keep it out of the collector's full passes, which would
+        # otherwise walk it every time and stall the loop for milliseconds.
+        gc.freeze()
+        spin_loop(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except fatal as error:

@@ -3,6 +3,8 @@
     model = InferenceModel.load(path)           # checks the checkpoint (CheckpointError)
     latent = model.context(rows, mask)          # np.float32 [context_dim]
     action = model.act(obs, latent)             # np.float64 [action_dim], tanh(mean)
+    # the same action in two parts, phi(s) computed before the latent is in:
+    action = model.act_on_features(model.features(obs), latent)
     estimate = model.decode(latent)             # physical parameter (float; NaN if none)
 
 Everything runs with batch size 1 and one torch thread (set on load:
@@ -68,17 +70,31 @@ class InferenceModel:
         latent = self.psi(torch.from_numpy(rows)[None], torch.from_numpy(mask)[None])[0]
         return latent.numpy().astype(np.float32)
 
-    @torch.no_grad()
     def act(self, obs: np.ndarray, latent: np.ndarray) -> np.ndarray:
         """Deterministic action tanh(mu) in [-1, 1] as float64."""
+        return self.act_on_features(self.features(obs), latent)
+
+    @torch.no_grad()
+    def features(self, obs: np.ndarray) -> np.ndarray:
+        """phi(s) as float32: the half of `act` that needs no context.
+
+        The policy node computes it when a state arrives, while the context
+        node is still computing that state's latent.
+        """
         _single_thread()
         obs = np.asarray(obs, dtype=np.float32).reshape(-1)
+        if obs.shape != (self.obs_dim,):
+            raise ValueError(f'obs must have {self.obs_dim} values, got {obs.size}')
+        return self.phi(torch.from_numpy(obs)[None])[0].numpy()
+
+    @torch.no_grad()
+    def act_on_features(self, features: np.ndarray, latent: np.ndarray) -> np.ndarray:
+        """Deterministic action tanh(mu) from phi(s) (`features`) and the latent, as float64."""
+        _single_thread()
         latent = np.asarray(latent, dtype=np.float32).reshape(-1)
-        if obs.shape != (self.obs_dim,) or latent.shape != (self.context_dim,):
-            raise ValueError(f'obs must have {self.obs_dim} values and latent '
-                             f'{self.context_dim}, got {obs.size} and {latent.size}')
-        z = self.phi(torch.from_numpy(obs)[None])
-        x = torch.cat([z, torch.from_numpy(latent)[None]], dim=-1)
+        if latent.shape != (self.context_dim,):
+            raise ValueError(f'latent must have {self.context_dim} values, got {latent.size}')
+        x = torch.cat([torch.from_numpy(features)[None], torch.from_numpy(latent)[None]], dim=-1)
         return self.actor.mean_action(x)[0].numpy().astype(np.float64)
 
     @torch.no_grad()

@@ -1,0 +1,151 @@
+"""A lean spin for the control loop's hot path.
+
+rclpy's executors rebuild a wait set over every entity of a node and wrap each
+callback in a Task at every wake-up; on this 2-core machine that costs more
+than the message hop itself, and a control step crosses three hops (see
+BENCHMARKS.md). `spin_loop` splits a node's work in two:
+
+* the LOOP subscriptions (created with `create_loop_subscription`) are waited
+  on in the calling thread through one small wait set, and every ready
+  message is taken straight into its callback;
+* everything else the node has (parameter services for `ros2 param set`, other
+  services, timers such as the 1 Hz diagnostics) stays with rclpy's
+  SingleThreadedExecutor, spinning in a background thread that sleeps until
+  one of them is due.
+
+The node may also have one loop DEADLINE (`loop_deadline()` returning
+`(monotonic_time, callback)` or None): the realtime control tick, the lockstep
+command watchdog. The loop's wait ends at it, so it fires on time.
+
+Callbacks never run concurrently: both threads run them under one lock, and
+the background thread wakes the loop after each of its callbacks (a reset or a
+parameter change may have moved the deadline).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+from rclpy.callback_groups import CallbackGroup
+from rclpy.executors import (ConditionReachedException, ExternalShutdownException,
+                             ShutdownException, SingleThreadedExecutor, TimeoutException)
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+
+# Longest the loop sleeps without a message or deadline (it then checks shutdown).
+IDLE_WAKE_S = 0.1
+
+
+class LoopCallbackGroup(CallbackGroup):
+    """Marks the loop's subscriptions: `spin_loop` takes them, rclpy's executors never do."""
+
+    def can_execute(self, entity) -> bool:  # noqa: D102
+        return False
+
+    def beginning_execution(self, entity) -> bool:  # noqa: D102
+        return False
+
+    def ending_execution(self, entity) -> None:  # noqa: D102
+        pass
+
+
+def create_loop_subscription(node: Node, msg_type, topic: str, callback: Callable, qos):
+    """Create a subscription on the control loop's hot path (see `spin_loop`)."""
+    group = getattr(node, '_loop_callback_group', None)
+    if group is None:
+        group = node._loop_callback_group = LoopCallbackGroup()
+    return node.create_subscription(msg_type, topic, callback, qos, callback_group=group)
+
+
+def loop_subscriptions(node: Node) -> list:
+    """Return the node's subscriptions created with `create_loop_subscription`."""
+    return [sub for sub in node.subscriptions
+            if isinstance(sub.callback_group, LoopCallbackGroup)]
+
+
+class _SerializedExecutor(SingleThreadedExecutor):
+    """rclpy's executor, running each callback under the loop's lock, then waking the loop."""
+
+    def __init__(self, lock: threading.Lock, wake_loop, context):
+        super().__init__(context=context)
+        self._lock, self._wake_loop = lock, wake_loop
+
+    def _spin_once_impl(self, timeout_sec=None, wait_condition=lambda: False) -> None:
+        try:
+            handler, _, _ = self.wait_for_ready_callbacks(timeout_sec, None, wait_condition)
+        except (ShutdownException, TimeoutException, ConditionReachedException):
+            return
+        with self._lock:
+            handler()
+        self._wake_loop.trigger_guard_condition()
+        if handler.exception() is not None:
+            raise handler.exception()
+        handler.result()
+
+
+def _spin_services(executor: SingleThreadedExecutor, errors: list) -> None:
+    try:
+        while executor.context.ok():
+            executor.spin_once(timeout_sec=IDLE_WAKE_S)
+    except ExternalShutdownException:
+        pass
+    except BaseException as error:  # handed to the loop thread, which re-raises it
+        errors.append(error)
+
+
+def _take_all(subscription) -> None:
+    """Deliver every message waiting on a subscription to its callback."""
+    handle, msg_type, raw, callback = (subscription.handle, subscription.msg_type,
+                                       subscription.raw, subscription.callback)
+    while True:
+        taken = handle.take_message(msg_type, raw)
+        if taken is None:
+            return
+        callback(taken[0])
+
+
+def spin_loop(node: Node) -> None:
+    """Spin `node` until its context shuts down (see the module docstring).
+
+    An exception raised by any callback, in either thread, ends the spin and
+    is raised here.
+    """
+    context = node.context
+    lock = threading.Lock()
+    wake_loop = _rclpy.GuardCondition(context.handle)
+    executor = _SerializedExecutor(lock, wake_loop, context)
+    executor.add_node(node)
+    errors: list[BaseException] = []
+    services = threading.Thread(target=_spin_services, args=(executor, errors),
+                                name='rclpy-executor', daemon=True)
+    services.start()
+    deadline_of = getattr(node, 'loop_deadline', lambda: None)
+    subscriptions = loop_subscriptions(node)
+    wait_set = _rclpy.WaitSet(len(subscriptions), 1, 0, 0, 0, 0, context.handle)
+    try:
+        while context.ok() and not errors:
+            with lock:
+                deadline = deadline_of()
+                now = time.monotonic()
+                if deadline is not None and now >= deadline[0]:
+                    deadline[1]()
+                    continue
+            timeout = IDLE_WAKE_S if deadline is None else min(IDLE_WAKE_S, deadline[0] - now)
+            wait_set.clear_entities()
+            for subscription in subscriptions:
+                wait_set.add_subscription(subscription.handle)
+            wait_set.add_guard_condition(wake_loop)
+            wait_set.wait(int(timeout * 1e9))
+            ready = wait_set.get_ready_entities('subscription')
+            if ready and context.ok():
+                with lock:
+                    for subscription in subscriptions:
+                        if subscription.handle.pointer in ready:
+                            _take_all(subscription)
+        if errors:
+            raise errors[0]
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        services.join(timeout=1.0)

@@ -9,6 +9,12 @@ source scripts/ros_env.sh
 venv="$ZEUS_VENV"
 python_bin="${PYTHON:-python3.11}"
 
+# A .venv that is a link to a missing directory (e.g. copied from another
+# machine) would make `python -m venv` fail with "File exists".
+if [ -L "$venv" ] && [ ! -e "$venv" ]; then
+  echo "[setup] removing dangling link $venv"
+  rm "$venv"
+fi
 if [ ! -x "$venv/bin/python" ]; then
   echo "[setup] creating $venv with $python_bin"
   "$python_bin" -m venv "$venv"

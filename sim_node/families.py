@@ -129,6 +129,22 @@ FAMILIES: dict[str, FamilySpec] = {
             live_range=(0.05, 3.0), alpha_psi=2.0,
             description='Walker walk; sliding friction of every foot-ground contact (Table 4).',
             edit_xml=_walker_friction),
+        # Not in the paper. In walker-walk-v0's range (0.8-1.35) a walking walker's
+        # feet do not slip, and friction cannot be learned from k=5 transitions
+        # (repro/friction_identifiability.py). Here they do slip, so a live
+        # friction swap changes the dynamics the context encoder sees. Splits
+        # shaped like Table 4: two training clusters, the gap between them for
+        # interpolation, values on both sides for extrapolation.
+        FamilySpec(
+            name='walker-walk-slippery', domain='walker', param_name='friction', param_unit='',
+            default=0.25,
+            train=(0.1, 0.125, 0.15, 0.175, 0.3, 0.325, 0.35, 0.375),
+            interpolation=(0.2, 0.225, 0.25, 0.275),
+            extrapolation=(0.06, 0.07, 0.08, 0.09, 0.4, 0.45, 0.5, 0.6),
+            live_range=(0.05, 3.0), alpha_psi=2.0,
+            description='Walker walk on a slippery floor; sliding friction of every foot-ground '
+                        'contact, in a range where the feet slip (this project, not the paper).',
+            edit_xml=_walker_friction),
         FamilySpec(
             name='walker-walk-v1', domain='walker', param_name='foot_length', param_unit='m',
             default=0.1,

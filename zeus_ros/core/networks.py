@@ -23,6 +23,18 @@ def mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
     return nn.Sequential(*mods)
 
 
+def run_mlp(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """Apply an `mlp()` network layer by layer through torch.nn.functional.
+
+    The same kernels on the same parameters as `net(x)`, so bit-identical, but
+    without a Module call per layer: at batch size 1 (the ROS nodes) that
+    per-call overhead is most of the cost.
+    """
+    for layer in net:
+        x = F.linear(x, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else F.relu(x)
+    return x
+
+
 def weight_init(module: nn.Module) -> None:
     """Orthogonal weights and zero biases for linear layers (SAC-AE convention)."""
     if isinstance(module, nn.Linear):
@@ -40,7 +52,7 @@ class ObsEncoder(nn.Module):
         self.feature_dim = feature_dim
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.norm(self.net(obs)))
+        return torch.tanh(self.norm(run_mlp(self.net, obs)))
 
 
 class ContextEncoder(nn.Module):
@@ -62,7 +74,7 @@ class ContextEncoder(nn.Module):
         self.context_dim = context_dim
 
     def forward(self, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        codes = self.net(rows)  # [B, k, C]
+        codes = run_mlp(self.net, rows)  # [B, k, C]
         m = mask.to(codes.dtype).unsqueeze(-1)  # [B, k, 1]
         count = m.sum(dim=1)  # [B, 1]
         if self.aggregation == 'max':
@@ -87,7 +99,7 @@ class GaussianModel(nn.Module):
         self.net = mlp(feature_dim + action_dim + context_dim, hidden, 2 * feature_dim, layers)
 
     def forward(self, z: torch.Tensor, a: torch.Tensor, c: torch.Tensor):
-        mu, log_std = self.net(torch.cat([z, a, c], dim=-1)).chunk(2, dim=-1)
+        mu, log_std = run_mlp(self.net, torch.cat([z, a, c], dim=-1)).chunk(2, dim=-1)
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (
             torch.tanh(log_std) + 1.0)
         return mu, log_std
@@ -102,7 +114,7 @@ class RewardModel(nn.Module):
         self.net = mlp(feature_dim + action_dim + context_dim, hidden, 1, layers)
 
     def forward(self, z: torch.Tensor, a: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        return self.net(torch.cat([z, a, c], dim=-1)).squeeze(-1)
+        return run_mlp(self.net, torch.cat([z, a, c], dim=-1)).squeeze(-1)
 
 
 class Actor(nn.Module):
@@ -116,7 +128,7 @@ class Actor(nn.Module):
         self.log_std_max = log_std_max
 
     def forward(self, x: torch.Tensor):
-        mu, log_std = self.net(x).chunk(2, dim=-1)
+        mu, log_std = run_mlp(self.net, x).chunk(2, dim=-1)
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (
             torch.tanh(log_std) + 1.0)
         return mu, log_std
@@ -164,4 +176,4 @@ class ParamDecoder(nn.Module):
         self.net = mlp(context_dim, hidden, 1, 1)
 
     def forward(self, c: torch.Tensor) -> torch.Tensor:
-        return self.net(c).squeeze(-1)
+        return run_mlp(self.net, c).squeeze(-1)

@@ -8,8 +8,11 @@ Measures, with the same checkpoint:
    the ratio to (1);
 3. step latency, state published -> its command, p50 / p99 / max (seen from an
    observer process that receives both topics; the sim's own view is in /diagnostics);
-4. realtime mode: period jitter of the sim's state stream (observer receipt times,
-   so it includes DDS delivery noise) and missed deadlines (period > 2x nominal);
+4. realtime mode: how late the sim's control ticks start (its own clock, from its
+   /diagnostics), ticks more than a period late, the period jitter of the state
+   stream at the observer (so including DDS delivery), and missed control
+   deadlines: states whose command arrived after the next state (the sim then
+   stepped on the older command).
 5. live swap: from the parameter set request to the first StepInfo under the new value.
 Prints a table and writes the figures as JSON (--json).
 """
@@ -21,14 +24,15 @@ import json
 import os
 from pathlib import Path
 import sys
+import threading
 import time
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 import numpy as np  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 import rclpy  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from sim_node.env import ParamEnv  # noqa: E402
@@ -37,6 +41,7 @@ from zeus_msgs.srv import Reset  # noqa: E402
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
 from zeus_ros.core.inference import InferenceModel  # noqa: E402
 from zeus_ros.core.window import ContextWindow  # noqa: E402
+from zeus_ros.loop_spin import create_loop_subscription, spin_loop  # noqa: E402
 from zeus_ros.ros_util import LOOP_QOS, stamp_ns  # noqa: E402
 
 
@@ -60,18 +65,26 @@ def in_process_rate(weights: Path, steps: int) -> float:
 
 
 class Observer:
-    """Receipt times of states, commands and step infos, by stamp."""
+    """Receipt times of states, commands and step infos, by stamp; the sim's diagnostics.
+
+    It takes the loop's topics with `spin_loop` in a background thread, the way
+    the nodes do: on two cores an observer on rclpy's executor would take CPU
+    from the loop it measures.
+    """
 
     def __init__(self, node):
         self.node = node
         self.state_at: dict[int, float] = {}
         self.command_at: dict[int, float] = {}
         self.steps: list[tuple[float, StepInfo]] = []
-        node.create_subscription(JointState, '/joint_states', self._on_state, LOOP_QOS)
-        node.create_subscription(JointState, '/joint_commands', self._on_command, LOOP_QOS)
-        node.create_subscription(StepInfo, '/zeus/step', self._on_step, LOOP_QOS)
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(node)
+        self.sim_diagnostics: list[dict] = []
+        create_loop_subscription(node, JointState, '/joint_states', self._on_state, LOOP_QOS)
+        create_loop_subscription(node, JointState, '/joint_commands', self._on_command,
+                                 LOOP_QOS)
+        create_loop_subscription(node, StepInfo, '/zeus/step', self._on_step, LOOP_QOS)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        self.spinner = threading.Thread(target=spin_loop, args=(node,), daemon=True)
+        self.spinner.start()
 
     def _on_state(self, msg):
         self.state_at[stamp_ns(msg.header)] = time.perf_counter()
@@ -82,10 +95,16 @@ class Observer:
     def _on_step(self, msg):
         self.steps.append((time.perf_counter(), msg))
 
+    def _on_diagnostics(self, msg):
+        for status in msg.status:
+            if status.name.startswith('sim_node'):
+                self.sim_diagnostics.append({kv.key: kv.value for kv in status.values})
+
     def spin_until(self, predicate, timeout):
+        """Wait (the spinner thread receives) until `predicate()` or the timeout."""
         deadline = time.monotonic() + timeout
         while not predicate() and time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.01)
+            time.sleep(0.005)
         return predicate()
 
     def call(self, client, request):
@@ -128,17 +147,33 @@ def lockstep_figures(observer: Observer, reset_client, param_client, param_name:
 
 
 def realtime_figures(observer: Observer, seconds: float, period_s: float) -> dict:
+    observer.spin_until(lambda: len(observer.command_at) > 50, 60.0)  # loop closed
     observer.state_at.clear()
+    observer.command_at.clear()
+    observer.sim_diagnostics.clear()
     observer.spin_until(lambda: False, seconds)
-    arrivals = np.array(sorted(observer.state_at.values()))
+    states = sorted(observer.state_at.items())
+    stamps = [s for s, _ in states]
+    arrivals = np.array([t for _, t in states])
     intervals = np.diff(arrivals)
     jitter = np.abs(intervals - period_s) * 1e3
+    # A command that reached the observer after the next state did not reach the
+    # sim before its next tick either (same DDS path): that control period missed.
+    late_commands = sum(1 for stamp, next_at in zip(stamps[:-1], arrivals[1:], strict=True)
+                        if observer.command_at.get(stamp, np.inf) > next_at)
+    reports = [d for d in observer.sim_diagnostics if 'tick_late_ms_p99' in d]
     return {'realtime_seconds': seconds, 'realtime_states': int(arrivals.size),
             'realtime_rate_hz': float((arrivals.size - 1) / (arrivals[-1] - arrivals[0])),
+            'sim_tick_late_ms_p99_worst_second': max(float(d['tick_late_ms_p99'])
+                                                     for d in reports),
+            'sim_tick_late_ms_max': max(float(d['tick_late_ms_max']) for d in reports),
+            'sim_missed_ticks': int(reports[-1]['missed_ticks']) - int(
+                reports[0]['missed_ticks']),
             'jitter_ms_p50': float(np.percentile(jitter, 50)),
             'jitter_ms_p99': float(np.percentile(jitter, 99)),
             'jitter_ms_max': float(jitter.max()),
-            'missed_deadlines': int(np.sum(intervals > 2 * period_s))}
+            'missed_deadlines': int(np.sum(intervals > 2 * period_s)),
+            'late_commands': late_commands}
 
 
 def run_graph(weights: Path, mode: str, measure) -> dict:
@@ -146,11 +181,13 @@ def run_graph(weights: Path, mode: str, measure) -> dict:
                                                   '--log-level', 'warn'])))
     rclpy.init()
     node = rclpy.create_node('zeus_bench')
+    observer = Observer(node)
     try:
-        return measure(Observer(node), node)
+        return measure(observer, node)
     finally:
+        rclpy.try_shutdown()          # ends the observer's spin_loop first
+        observer.spinner.join(timeout=5.0)
         node.destroy_node()
-        rclpy.try_shutdown()
         bringup.stop()
 
 

@@ -145,3 +145,26 @@ def test_every_family_runs_as_a_node(sim, family):
     assert info.family == family and list(info.param_names) == [spec.param_name]
     assert list(info.param_values) == [value] and info.reward == expected.reward
     np.testing.assert_array_equal(state.position, env.joint_positions())
+
+
+def test_realtime_mode_keeps_its_rate_and_switches_live(sim, ros_node):
+    """Realtime steps on its own schedule; `mode` switches either way while running."""
+    _, driver = sim(family='cheetah-run-v0', mode='realtime', command_timeout=0.05)
+    period = ParamEnv('cheetah-run-v0').control_timestep
+
+    def steps_during(seconds):
+        first = len(driver.steps)
+        spin_until(ros_node, lambda: False, seconds)
+        return len(driver.steps) - first
+    # Nobody commands: the sim still steps at its control rate, on zero actions.
+    count = steps_during(2.0)
+    assert 0.8 * 2.0 / period <= count <= 1.1 * 2.0 / period, count
+    assert not any(any(s.applied_action) for s in list(driver.steps.values())[-20:])
+    # Switched to lockstep, it waits for commands (a zero action after the 50 ms
+    # timeout), so it slows down from 100 to at most 20 steps per second.
+    assert driver.set_param('mode', 'lockstep').successful
+    count = steps_during(1.0)
+    assert count <= 1.0 / 0.05 + 2, count
+    assert driver.set_param('mode', 'realtime').successful
+    count = steps_during(1.0)
+    assert count >= 0.8 * 1.0 / period, count

@@ -29,6 +29,7 @@ clean:
 # Benchmarks (see BENCHMARKS.md). REALTIME_SECONDS=600 for the 10-minute realtime goal.
 REALTIME_SECONDS ?= 60
 bench: setup
+	$(IN_WS) python bench/bench_hop.py
 	$(IN_WS) python bench/bench_loop.py --weights weights/walker-walk-v0-zeus \
 	  --realtime-weights weights/cheetah-run-v0-zeus --realtime-seconds $(REALTIME_SECONDS) \
 	  --json bench/results_loop.json

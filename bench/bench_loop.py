@@ -4,13 +4,14 @@
 
 Measures, with the same checkpoint:
 1. in-process loop (ParamEnv + ContextWindow + InferenceModel, no middleware): steps/s;
-2. lockstep through the three ROS processes: control steps/s over one episode, and
-   the ratio to (1);
+2. lockstep through the three ROS processes: control steps/s, the median (and
+   range) over --episodes episodes, and the ratio of the median to (1);
 3. step latency, state published -> its command, p50 / p99 / max (seen from an
    observer process that receives both topics; the sim's own view is in /diagnostics);
 4. realtime mode: how late the sim's control ticks start (its own clock, from its
-   /diagnostics), ticks more than a period late, the period jitter of the state
-   stream at the observer (so including DDS delivery), and missed control
+   /diagnostics: every tick of the window), ticks more than a period late, the
+   period jitter of the state stream at the observer (so including DDS
+   delivery), and missed control
    deadlines: states whose command arrived after the next state (the sim then
    stepped on the older command).
 5. live swap: from the parameter set request to the first StepInfo under the new value.
@@ -114,18 +115,23 @@ class Observer:
         return future.result()
 
 
+def episode_rate(observer: Observer, reset_client, seed: int) -> float:
+    """Run one lockstep episode from a reset; its control steps per second."""
+    response = observer.call(reset_client, Reset.Request(seed=seed))
+    episode = int(response.message.split(':')[0].split()[1])
+    observer.spin_until(lambda: any(m.episode == episode and m.truncated
+                                    for _, m in observer.steps[-5:]), 300.0)
+    times = [t for t, m in observer.steps if m.episode == episode]
+    return (len(times) - 1) / (times[-1] - times[0])
+
+
 def lockstep_figures(observer: Observer, reset_client, param_client, param_name: str,
-                     swaps: int) -> dict:
+                     swaps: int, episodes: int) -> dict:
     closed = observer.spin_until(
         lambda: any(any(m.applied_action) for _, m in observer.steps[-3:]), 60.0)
     if not closed:
         raise RuntimeError('the loop never closed')
-    response = observer.call(reset_client, Reset.Request(seed=0))
-    episode = int(response.message.split(':')[0].split()[1])
-    observer.spin_until(lambda: any(m.episode == episode and m.truncated
-                                    for _, m in observer.steps), 300.0)
-    times = [t for t, m in observer.steps if m.episode == episode]
-    rate = (len(times) - 1) / (times[-1] - times[0])
+    rates = [episode_rate(observer, reset_client, seed) for seed in range(episodes)]
     latencies = np.array([observer.command_at[s] - observer.state_at[s]
                           for s in observer.state_at if s in observer.command_at
                           and observer.command_at[s] > observer.state_at[s]]) * 1e3
@@ -138,7 +144,9 @@ def lockstep_figures(observer: Observer, reset_client, param_client, param_name:
         observer.spin_until(lambda v=value: observer.steps[-1][1].param_values[0] == v, 10.0)
         first = next(t for t, m in observer.steps if t >= sent and m.param_values[0] == value)
         swap_ms.append((first - sent) * 1e3)
-    return {'lockstep_steps_per_s': rate,
+    return {'lockstep_steps_per_s': float(np.median(rates)),
+            'lockstep_steps_per_s_min': min(rates), 'lockstep_steps_per_s_max': max(rates),
+            'lockstep_episodes': episodes,
             'latency_ms_p50': float(np.percentile(latencies, 50)),
             'latency_ms_p99': float(np.percentile(latencies, 99)),
             'latency_ms_max': float(latencies.max()),
@@ -146,12 +154,17 @@ def lockstep_figures(observer: Observer, reset_client, param_client, param_name:
             'swap_ms_median': float(np.median(swap_ms)), 'swap_ms_max': float(max(swap_ms))}
 
 
-def realtime_figures(observer: Observer, seconds: float, period_s: float) -> dict:
+def realtime_figures(observer: Observer, param_client, seconds: float, period_s: float) -> dict:
     observer.spin_until(lambda: len(observer.command_at) > 50, 60.0)  # loop closed
+    # Setting the mode (again) restarts the sim's tick schedule and its lateness
+    # statistics: they then cover exactly the measured window.
+    observer.call(param_client, SetParameters.Request(
+        parameters=[Parameter('mode', value='realtime').to_parameter_msg()]))
     observer.state_at.clear()
     observer.command_at.clear()
-    observer.sim_diagnostics.clear()
     observer.spin_until(lambda: False, seconds)
+    observer.sim_diagnostics.clear()
+    observer.spin_until(lambda: observer.sim_diagnostics, 5.0)  # the next 1 Hz report
     states = sorted(observer.state_at.items())
     stamps = [s for s, _ in states]
     arrivals = np.array([t for _, t in states])
@@ -161,14 +174,15 @@ def realtime_figures(observer: Observer, seconds: float, period_s: float) -> dic
     # sim before its next tick either (same DDS path): that control period missed.
     late_commands = sum(1 for stamp, next_at in zip(stamps[:-1], arrivals[1:], strict=True)
                         if observer.command_at.get(stamp, np.inf) > next_at)
-    reports = [d for d in observer.sim_diagnostics if 'tick_late_ms_p99' in d]
+    sim = observer.sim_diagnostics[-1]
     return {'realtime_seconds': seconds, 'realtime_states': int(arrivals.size),
             'realtime_rate_hz': float((arrivals.size - 1) / (arrivals[-1] - arrivals[0])),
-            'sim_tick_late_ms_p99_worst_second': max(float(d['tick_late_ms_p99'])
-                                                     for d in reports),
-            'sim_tick_late_ms_max': max(float(d['tick_late_ms_max']) for d in reports),
-            'sim_missed_ticks': int(reports[-1]['missed_ticks']) - int(
-                reports[0]['missed_ticks']),
+            'sim_ticks': int(sim['ticks']),
+            'sim_tick_late_ms_p50': float(sim['tick_late_ms_p50']),
+            'sim_tick_late_ms_p99': float(sim['tick_late_ms_p99']),
+            'sim_tick_late_ms_p999': float(sim['tick_late_ms_p999']),
+            'sim_tick_late_ms_max': float(sim['tick_late_ms_max']),
+            'sim_missed_ticks': int(sim['missed_ticks']),
             'jitter_ms_p50': float(np.percentile(jitter, 50)),
             'jitter_ms_p99': float(np.percentile(jitter, 99)),
             'jitter_ms_max': float(jitter.max()),
@@ -199,6 +213,8 @@ def main(argv=None) -> int:
                              'cheetah checkpoint gives the 100 Hz case')
     parser.add_argument('--inprocess-steps', type=int, default=3000)
     parser.add_argument('--swaps', type=int, default=10)
+    parser.add_argument('--episodes', type=int, default=5,
+                        help='lockstep episodes (1000 steps each); the median rate is reported')
     parser.add_argument('--realtime-seconds', type=float, default=60.0)
     parser.add_argument('--json', type=Path, help='write the figures here')
     args = parser.parse_args(argv)
@@ -210,7 +226,7 @@ def main(argv=None) -> int:
     def lockstep(observer, node):
         return lockstep_figures(observer, node.create_client(Reset, '/sim_node/reset'),
                                 node.create_client(SetParameters, '/sim_node/set_parameters'),
-                                metadata['param_name'], args.swaps)
+                                metadata['param_name'], args.swaps, args.episodes)
     figures.update(run_graph(args.weights, 'lockstep', lockstep))
     figures['lockstep_ratio_to_inprocess'] = (figures['lockstep_steps_per_s']
                                               / figures['inprocess_steps_per_s'])
@@ -220,8 +236,10 @@ def main(argv=None) -> int:
     figures['realtime_family'] = rt_meta['family']
     figures['realtime_period_ms'] = period * 1e3
     figures.update(run_graph(rt_weights, 'realtime',
-                             lambda observer, _node: realtime_figures(
-                                 observer, args.realtime_seconds, period)))
+                             lambda observer, node: realtime_figures(
+                                 observer, node.create_client(SetParameters,
+                                                              '/sim_node/set_parameters'),
+                                 args.realtime_seconds, period)))
     figures['load_avg_end'] = os.getloadavg()[0]
     width = max(len(k) for k in figures)
     for key, value in figures.items():

@@ -28,12 +28,15 @@ from zeus_msgs.srv import Reset
 from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
 from sim_node.protocol import parse_command
-from zeus_ros.loop_spin import create_loop_subscription
+from zeus_ros.loop_spin import create_loop_subscription, LoopDeadline
 from zeus_ros.ros_util import describe as _describe
 from zeus_ros.ros_util import (diagnostic_array, LOOP_QOS as STATE_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings, TickLateness)
 
 MODES = ('lockstep', 'realtime')
+# The realtime tick sleeps its last millisecond instead of waiting on messages:
+# that wait returns up to ~1 ms late (p99) on this machine, a sleep 0.4 ms.
+TICK_SLEEP_LEAD_S = 0.001
 
 
 class SimNode(Node):
@@ -77,8 +80,6 @@ class SimNode(Node):
         self.counters = {'rejected': 0, 'stale': 0, 'timeouts': 0, 'instabilities': 0}
         self.warnings = ThrottledWarnings(self.get_logger())
         self.step_rate = RateMeter()  # steps/s; latency = state published -> command in
-        self.tick_lateness = TickLateness()  # realtime: tick start - scheduled time
-        self.next_tick = 0.0
 
         self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
         self.step_pub = self.create_publisher(StepInfo, '/zeus/step', STATE_QOS)
@@ -88,6 +89,7 @@ class SimNode(Node):
         self.create_service(Reset, '~/reset', self.reset_callback)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(1.0, self.diagnostics_callback)
+        self.tick_lateness = TickLateness()  # realtime: tick start - scheduled time
         self._configure_stepping()
         self.env.reset(seed=self._param('seed'))
         self.get_logger().info(
@@ -128,13 +130,15 @@ class SimNode(Node):
         self.command_timeout = self._param('command_timeout')
         self.tick_period = self.env.control_timestep / self._param('real_time_factor')
         self.next_tick = time.monotonic() + self.tick_period
+        self.tick_lateness.restart()
 
-    def loop_deadline(self):
-        """Return when the node must act without a message: (monotonic time, callback)."""
+    def loop_deadline(self) -> LoopDeadline | None:
+        """Return when the node must act without a message (see zeus_ros.loop_spin)."""
         if self.mode == 'realtime':
-            return self.next_tick, self.realtime_tick_callback
+            return LoopDeadline(self.next_tick, self.realtime_tick_callback, TICK_SLEEP_LEAD_S)
         if self.awaited_ns is not None:
-            return self.awaited_since + self.command_timeout, self.lockstep_timeout_callback
+            return LoopDeadline(self.awaited_since + self.command_timeout,
+                                self.lockstep_timeout_callback)
         return None
 
     # -- stepping -------------------------------------------------------------

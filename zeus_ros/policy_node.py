@@ -22,7 +22,7 @@ from zeus_msgs.msg import Context
 
 from zeus_ros.checkpoint import CheckpointError
 from zeus_ros.context_node import GraphMismatch, load_weights_parameter
-from zeus_ros.loop_spin import create_loop_subscription
+from zeus_ros.loop_spin import create_loop_subscription, LoopDeadline
 from zeus_ros.pairing import layout_from_metadata, StateContextPairer
 from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
@@ -95,10 +95,10 @@ class PolicyNode(Node):
             action = self.zero_action
         self.publish_command(stamp, np.clip(action, -1.0, 1.0))
 
-    def loop_deadline(self):
-        """Return when the oldest waiting state's context times out: (time, callback)."""
+    def loop_deadline(self) -> LoopDeadline | None:
+        """Return when the oldest waiting state's context times out (see zeus_ros.loop_spin)."""
         expiry = self.pairer.next_expiry()
-        return None if expiry is None else (expiry, self.timeout_callback)
+        return None if expiry is None else LoopDeadline(expiry, self.timeout_callback)
 
     def timeout_callback(self) -> None:
         stamp = self.pairer.expired(time.monotonic())

@@ -65,12 +65,17 @@ class LoopCallbackGroup(CallbackGroup):
         pass
 
 
-def create_loop_subscription(node: Node, msg_type, topic: str, callback: Callable, qos):
-    """Create a subscription on the control loop's hot path (see `spin_loop`)."""
+def create_loop_subscription(node: Node, msg_type, topic: str, callback: Callable, qos,
+                             **options):
+    """Create a subscription on the control loop's hot path (see `spin_loop`).
+
+    `options` go to `Node.create_subscription` (e.g. raw=True for CDR bytes).
+    """
     group = getattr(node, '_loop_callback_group', None)
     if group is None:
         group = node._loop_callback_group = LoopCallbackGroup()
-    return node.create_subscription(msg_type, topic, callback, qos, callback_group=group)
+    return node.create_subscription(msg_type, topic, callback, qos, callback_group=group,
+                                    **options)
 
 
 def loop_subscriptions(node: Node) -> list:

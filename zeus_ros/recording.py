@@ -16,6 +16,8 @@ from ament_index_python.packages import get_package_share_directory
 from mcap.writer import CompressionType, Writer
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from zeus_ros.loop_spin import create_loop_subscription
+
 _SEPARATOR = '=' * 80
 _PRIMITIVES = {'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16',
                'uint16', 'int32', 'uint32', 'int64', 'uint64', 'string', 'wstring'}
@@ -84,7 +86,9 @@ class McapRecorder:
             self._channels[topic] = self._writer.register_channel(
                 topic=topic, message_encoding='cdr', schema_id=schema)
             self.counts[topic] = 0
-            node.create_subscription(message_class(type_name), topic,
+            # Loop subscriptions: taken by spin_loop, which keeps up with the
+            # loop's rate where rclpy's executor drops messages.
+            create_loop_subscription(node, message_class(type_name), topic,
                                      self._writer_for(topic), RECORD_QOS, raw=True)
 
     def _writer_for(self, topic: str):

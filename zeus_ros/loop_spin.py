@@ -85,7 +85,12 @@ def loop_subscriptions(node: Node) -> list:
 
 
 class _SerializedExecutor(SingleThreadedExecutor):
-    """rclpy's executor, running each callback under the loop's lock, then waking the loop."""
+    """rclpy's executor, running each callback under the loop's lock, then waking the loop.
+
+    It overrides SingleThreadedExecutor's private `_spin_once_impl` (the same
+    steps, plus the lock and the wake-up), which is written against rclpy
+    7.1.6 as pinned in requirements.lock: check it when rclpy is upgraded.
+    """
 
     def __init__(self, lock: threading.Lock, wake_loop, context):
         super().__init__(context=context)

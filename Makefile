@@ -7,7 +7,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
 
 # A shell with the venv, the ROS env and the colcon install overlay.
-IN_WS := source scripts/ros_env.sh && source .venv/bin/activate && source install/setup.bash &&
+IN_WS := source scripts/ros_env.sh && source "$$ZEUS_VENV/bin/activate" && source install/setup.bash &&
 
 .PHONY: setup test demo lint bench clean
 

@@ -25,7 +25,6 @@ import json
 import os
 from pathlib import Path
 import sys
-import threading
 import time
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -42,7 +41,8 @@ from zeus_msgs.srv import Reset  # noqa: E402
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
 from zeus_ros.core.inference import InferenceModel  # noqa: E402
 from zeus_ros.core.window import ContextWindow  # noqa: E402
-from zeus_ros.loop_spin import create_loop_subscription, spin_loop  # noqa: E402
+from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
+                                wait_until)
 from zeus_ros.ros_util import LOOP_QOS, stamp_ns  # noqa: E402
 
 
@@ -91,8 +91,7 @@ class Observer:
                                  LOOP_QOS)
         create_loop_subscription(node, StepInfo, '/zeus/step', self._on_step, LOOP_QOS)
         node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
-        self.spinner = threading.Thread(target=spin_loop, args=(node,), daemon=True)
-        self.spinner.start()
+        self.spinner = spin_in_background(node)
 
     def _on_state(self, msg):
         self.state_at[stamp_ns(msg.header)] = time.perf_counter()
@@ -108,12 +107,10 @@ class Observer:
             if status.name.startswith('sim_node'):
                 self.sim_diagnostics.append({kv.key: kv.value for kv in status.values})
 
-    def spin_until(self, predicate, timeout):
+    @staticmethod
+    def spin_until(predicate, timeout):
         """Wait (the spinner thread receives) until `predicate()` or the timeout."""
-        deadline = time.monotonic() + timeout
-        while not predicate() and time.monotonic() < deadline:
-            time.sleep(0.005)
-        return predicate()
+        return wait_until(predicate, timeout)
 
     def call(self, client, request):
         client.wait_for_service(timeout_sec=30.0)

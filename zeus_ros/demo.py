@@ -17,7 +17,6 @@ import json
 import os
 from pathlib import Path
 import sys
-import threading
 import time
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -30,7 +29,8 @@ from zeus_msgs.msg import Context, StepInfo  # noqa: E402
 from zeus_msgs.srv import Reset  # noqa: E402
 
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
-from zeus_ros.loop_spin import create_loop_subscription, spin_loop  # noqa: E402
+from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
+                                wait_until)
 from zeus_ros.recording import McapRecorder  # noqa: E402
 from zeus_ros.ros_util import LOOP_QOS, stamp_ns  # noqa: E402
 
@@ -86,8 +86,7 @@ class DemoRun:
         self.reset_client = node.create_client(Reset, '/sim_node/reset')
         self.param_client = node.create_client(SetParameters, '/sim_node/set_parameters')
         self.recorder = McapRecorder(node, out / 'demo.mcap', RECORDED_TOPICS)
-        self.spinner = threading.Thread(target=spin_loop, args=(node,), daemon=True)
-        self.spinner.start()
+        self.spinner = spin_in_background(node)
 
     def _on_context(self, msg: Context) -> None:
         self.contexts[stamp_ns(msg.header)] = msg
@@ -100,12 +99,7 @@ class DemoRun:
     @staticmethod
     def spin_until(predicate, timeout: float) -> bool:
         """Wait (the spinner thread receives) until `predicate()` or the timeout."""
-        deadline = time.monotonic() + timeout
-        while not predicate():
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.002)
-        return True
+        return wait_until(predicate, timeout)
 
     def call(self, client, request, timeout: float = 30.0):
         if not client.wait_for_service(timeout_sec=timeout):

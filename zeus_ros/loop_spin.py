@@ -109,6 +109,26 @@ class _SerializedExecutor(SingleThreadedExecutor):
         handler.result()
 
 
+def spin_in_background(node: Node) -> threading.Thread:
+    """Run `spin_loop(node)` in a daemon thread, for tools that wait in their main thread.
+
+    It ends when the node's context shuts down; join it before destroying the node.
+    """
+    spinner = threading.Thread(target=spin_loop, args=(node,), name='spin-loop', daemon=True)
+    spinner.start()
+    return spinner
+
+
+def wait_until(predicate: Callable[[], object], timeout: float, poll_s: float = 0.002) -> bool:
+    """Poll `predicate()` until it is truthy (True) or `timeout` seconds pass (False)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(poll_s)
+    return True
+
+
 def _spin_services(executor: SingleThreadedExecutor, errors: list) -> None:
     try:
         while executor.context.ok():

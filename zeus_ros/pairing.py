@@ -144,7 +144,8 @@ class StateContextPairer:
 
     def expired(self, now: float) -> int | None:
         """Newest state that waited past the timeout for its context, or None."""
-        late = [s for s, (_, t) in self._states.items() if now - t > self.context_timeout]
+        # >= so that a check at exactly `next_expiry()` finds the state expired.
+        late = [s for s, (_, t) in self._states.items() if now - t >= self.context_timeout]
         if not late:
             return None
         stamp = max(late)

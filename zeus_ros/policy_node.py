@@ -3,9 +3,10 @@
 Subscribes /joint_states and /zeus/context; when the state and the context of
 one stamp are both in, publishes the deterministic (mean) action on
 /joint_commands with that stamp and the actuator names. phi(s) is computed
-as soon as the state arrives, while the context node works on its latent. It answers the newest
-complete pair (in realtime mode older states are skipped); a state whose
-context has not come within `context_timeout` gets a zero action and a warning.
+as soon as the state arrives, while the context node works on its latent. It
+answers the newest complete pair (in realtime mode older states are skipped);
+a state whose context has not come within `context_timeout` gets a zero action
+and a warning.
 """
 
 from __future__ import annotations

@@ -44,6 +44,13 @@ class LockstepDriver:
             and self.node.count_publishers('/zeus/step') > 0), self.timeout)
         assert ready, 'sim_node did not come up on the graph'
 
+    def follow_latest(self):
+        """Take the newest state the sim published as current (after another driver stopped)."""
+        paired = [key for key in self.steps if key in self.states]
+        assert paired, 'no state received from the sim yet'
+        self.current = max(paired)
+        return self._pair(self.current)
+
     def _call(self, client, request):
         future = client.call_async(request)
         assert spin_until(self.node, future.done, self.timeout), 'service call timed out'

@@ -12,6 +12,7 @@ from zeus_ros.core.inference import InferenceModel
 FAMILY = 'walker-walk-v0'
 WALKER_WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
 QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+ACTUATORS = ('right_hip', 'right_knee', 'right_ankle', 'left_hip', 'left_knee', 'left_ankle')
 
 
 @pytest.fixture
@@ -90,25 +91,43 @@ def test_policy_killed_then_restarted(loop, ros_node, spawn, small_checkpoint):
 
 
 def test_context_node_restart_refills_the_window(loop, ros_node, spawn, small_checkpoint):
-    contexts = collect(ros_node, Context, '/zeus/context')
+    contexts = []
+    context_sub = ros_node.create_subscription(Context, '/zeus/context', contexts.append, QOS)
     steps = collect(ros_node, StepInfo, '/zeus/step')
     procs, driver = loop()
     wait_loop_running(ros_node, steps)
     driver.reset(seed=2)
     assert spin_until(ros_node, lambda: len(contexts) > 20, 30.0)
     assert contexts[-1].window_fill == 5
+    # Stop the policy too, so that the test steps the sim itself: at hundreds of
+    # steps per second the new node would otherwise refill its window before
+    # this test's subscription had matched its publisher. The sim must not step
+    # on its own meanwhile.
+    assert driver.set_param('command_timeout', 60.0).successful
+    procs['policy_node'].stop()
     procs['context_node'].stop()
-    spin_until(ros_node, lambda: False, 1.0)  # take in what the old node had sent
+    spin_until(ros_node, lambda: False, 1.0)  # take in what the old nodes had sent
+    driver.follow_latest()
     mark = len(contexts)
     start_node(spawn, 'context_node', {'weights': small_checkpoint})
-    assert spin_until(ros_node, lambda: len(contexts) > mark + 10, 60.0), \
-        'contexts did not resume'
+    assert spin_until(ros_node, lambda: context_sub.get_publisher_count() > 0, 60.0), \
+        'the new context node did not come up'
+    # Discovery is not symmetric: our reader can see the new writer a moment
+    # before the writer sees our reader, and a message sent in between is lost.
+    spin_until(ros_node, lambda: False, 1.0)
+
+    def stepped_until_contexts(count, limit=40):
+        for _ in range(limit):
+            driver.step(np.zeros(len(ACTUATORS)), ACTUATORS)
+            if spin_until(ros_node, lambda: len(contexts) >= mark + count, 0.5):
+                return True
+        return False
+    assert stepped_until_contexts(8), 'contexts did not resume'
     fills = [c.window_fill for c in contexts[mark:]]
-    # The new node starts from an empty window and refills one transition per
-    # step up to k. Its very first context may go out before this test's
-    # subscription has matched the new publisher, so start from what arrived.
-    assert fills[0] <= 1, fills
-    assert fills == [min(fills[0] + i, 5) for i in range(len(fills))], fills
+    # The new node's first state has no transition before it (fill 0); then
+    # one transition per step up to k. Steps it saw before its subscriptions
+    # matched the sim do not count: it begins at its first whole state.
+    assert fills[:8] == [0, 1, 2, 3, 4, 5, 5, 5], fills
 
 
 def test_mismatched_or_missing_weights_stop_the_node(spawn, small_checkpoint):

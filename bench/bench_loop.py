@@ -14,6 +14,8 @@ Measures, with the same checkpoint:
    delivery), and missed control
    deadlines: states whose command arrived after the next state (the sim then
    stepped on the older command).
+   The realtime run gives the nodes SCHED_FIFO (--realtime-priority, default 50);
+   --compare-normal-scheduler repeats it under the normal scheduler.
 5. live swap: from the parameter set request to the first StepInfo under the new value.
 Prints a table and writes the figures as JSON (--json).
 """
@@ -194,9 +196,10 @@ def realtime_figures(observer: Observer, param_client, seconds: float, period_s:
             'late_commands': late_commands}
 
 
-def run_graph(weights: Path, mode: str, measure) -> dict:
-    bringup = Bringup(node_commands(bringup_args(['--weights', str(weights), '--mode', mode,
-                                                  '--log-level', 'warn'])))
+def run_graph(weights: Path, mode: str, measure, thread_priority: int = 0) -> dict:
+    bringup = Bringup(node_commands(bringup_args([
+        '--weights', str(weights), '--mode', mode, '--log-level', 'warn',
+        '--thread-priority', str(thread_priority)])))
     rclpy.init()
     node = rclpy.create_node('zeus_bench')
     observer = Observer(node)
@@ -221,6 +224,13 @@ def main(argv=None) -> int:
     parser.add_argument('--episodes', type=int, default=5,
                         help='lockstep episodes (1000 steps each); the median rate is reported')
     parser.add_argument('--realtime-seconds', type=float, default=60.0)
+    parser.add_argument('--realtime-priority', type=int, default=50,
+                        help="the nodes' SCHED_FIFO priority in the realtime run (bringup "
+                             "--thread-priority; 0 = normal scheduler). Lockstep runs under "
+                             "the normal scheduler: FIFO measured slower there")
+    parser.add_argument('--compare-normal-scheduler', action='store_true',
+                        help='run the realtime part a second time under the normal '
+                             'scheduler (figures prefixed normal_sched_)')
     parser.add_argument('--json', type=Path, help='write the figures here')
     args = parser.parse_args(argv)
     metadata = json.loads((args.weights / 'metadata.json').read_text())
@@ -240,11 +250,17 @@ def main(argv=None) -> int:
     period = float(rt_meta['control_timestep'])
     figures['realtime_family'] = rt_meta['family']
     figures['realtime_period_ms'] = period * 1e3
-    figures.update(run_graph(rt_weights, 'realtime',
-                             lambda observer, node: realtime_figures(
-                                 observer, node.create_client(SetParameters,
-                                                              '/sim_node/set_parameters'),
-                                 args.realtime_seconds, period)))
+
+    def realtime(observer, node):
+        return realtime_figures(observer, node.create_client(SetParameters,
+                                                             '/sim_node/set_parameters'),
+                                args.realtime_seconds, period)
+    figures['realtime_thread_priority'] = args.realtime_priority
+    figures.update(run_graph(rt_weights, 'realtime', realtime, args.realtime_priority))
+    if args.compare_normal_scheduler:
+        normal = run_graph(rt_weights, 'realtime', realtime, thread_priority=0)
+        figures.update({f'normal_sched_{key}': value for key, value in normal.items()
+                        if key != 'realtime_seconds'})
     figures['load_avg_end'] = os.getloadavg()[0]
     width = max(len(k) for k in figures)
     for key, value in figures.items():

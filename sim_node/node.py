@@ -64,6 +64,12 @@ class SimNode(Node):
         self.declare_parameter(self.spec.param_name, float(self.spec.default), _describe(
             f'{self.spec.description} Live swap: takes effect at the next step.',
             floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi)]))
+        # The same checks as a live set for what the command line gave at start
+        # (a declaration checks only type and range).
+        for name in (self.spec.param_name, 'mode'):
+            reason = self._parameter_problem(self.get_parameter(name))
+            if reason is not None:
+                raise ValueError(f'parameter {name}: {reason}')
         self.add_on_set_parameters_callback(self.validate_parameters_callback)
         self.add_post_set_parameters_callback(self.apply_parameters_callback)
 

@@ -1,5 +1,9 @@
 """sim_node over real DDS: live swaps, rejected values, lockstep determinism, bad commands."""
 
+import os
+import subprocess
+import sys
+
 from conftest import installed_exe, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
@@ -168,3 +172,33 @@ def test_realtime_mode_keeps_its_rate_and_switches_live(sim, ros_node):
     assert driver.set_param('mode', 'realtime').successful
     count = steps_during(1.0)
     assert count >= 0.8 * 1.0 / period, count
+
+
+def _may_use_sched_fifo() -> bool:
+    """Whether this machine lets a process of ours run under SCHED_FIFO."""
+    probe = ('import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))')
+    return subprocess.run([sys.executable, '-c', probe], capture_output=True).returncode == 0
+
+
+def test_thread_priority_puts_the_loop_under_sched_fifo_or_warns(sim):
+    proc, driver = sim(thread_priority=20)
+    driver.reset(seed=0)
+    _, info = driver.step(np.zeros(6), ACTUATORS)
+    assert info.step == 1  # it runs either way
+    if _may_use_sched_fifo():
+        assert os.sched_getscheduler(proc.proc.pid) == os.SCHED_FIFO
+        assert os.sched_getparam(proc.proc.pid).sched_priority == 20
+        assert 'SCHED_FIFO, priority 20' in proc.output()
+    else:
+        assert os.sched_getscheduler(proc.proc.pid) == os.SCHED_OTHER
+        assert 'SCHED_FIFO refused' in proc.output()
+
+
+@pytest.mark.parametrize('param, value', [('thread_priority', 100), ('friction', 9.0),
+                                          ('mode', 3), ('mode', 'fast')])
+def test_a_bad_startup_parameter_ends_the_node_with_the_reason(spawn, param, value):
+    proc = spawn([installed_exe('sim_node'), '--ros-args', '-p', f'family:={FAMILY}',
+                  '-p', f'{param}:={value}'], 'sim_node')
+    assert proc.proc.wait(30) == 1
+    assert f'parameter {param}:' in proc.output()
+    assert 'Traceback' not in proc.output()

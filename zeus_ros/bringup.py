@@ -32,6 +32,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--real-time-factor', type=float, default=1.0)
     parser.add_argument('--command-timeout', type=float, default=0.5)
     parser.add_argument('--context-timeout', type=float, default=0.5)
+    parser.add_argument('--thread-priority', type=int, default=0,
+                        help="SCHED_FIFO priority (1-99) of every node's loop thread; "
+                             '0 keeps the normal scheduler')
     parser.add_argument('--log-level', default='info')
     return parser.parse_args(argv)
 
@@ -53,7 +56,7 @@ def node_commands(args: argparse.Namespace) -> dict[str, list[str]]:
     commands = {}
     for name, module in NODES:
         argv = [sys.executable, '-m', module, '--ros-args', '--log-level', args.log_level]
-        for key, value in params[name].items():
+        for key, value in {**params[name], 'thread_priority': args.thread_priority}.items():
             argv += ['-p', f'{key}:={value}']
         commands[name] = argv
     return commands

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import gc
+import os
 import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sim_node.protocol import ns_to_stamp, stamp_to_ns
@@ -35,6 +37,31 @@ def set_stamp(header, ns: int) -> None:
 def describe(text: str, read_only: bool = False, **ranges) -> ParameterDescriptor:
     """Parameter descriptor with a description, optional ranges and read-only flag."""
     return ParameterDescriptor(description=text, read_only=read_only, **ranges)
+
+
+def apply_thread_priority(node) -> int:
+    """Declare `thread_priority`; run the calling thread under SCHED_FIFO at it if > 0.
+
+    The convention of ros2_control's controller_manager: a node that must meet a
+    period asks for a real-time priority and, if the system refuses it, warns
+    and runs on under the normal scheduler. Returns the priority in force.
+    Threads started afterwards (spin_loop's executor thread) inherit it.
+    """
+    priority = node.declare_parameter('thread_priority', 0, describe(
+        "SCHED_FIFO priority (1-99) of the node's loop thread; 0 keeps the normal "
+        'scheduler. Needs root, CAP_SYS_NICE or an rtprio limit; if refused, the node '
+        'warns and runs on (read-only).', read_only=True,
+        integer_range=[IntegerRange(from_value=0, to_value=99, step=1)])).value
+    if priority == 0:
+        return 0
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as error:
+        node.get_logger().warning(f'thread_priority {priority}: SCHED_FIFO refused '
+                                  f'({error.strerror}); running under the normal scheduler')
+        return 0
+    node.get_logger().info(f'loop thread runs under SCHED_FIFO, priority {priority}')
+    return priority
 
 
 def diagnostic_array(node, name: str, hardware_id: str, values: dict,
@@ -132,12 +159,15 @@ class TickLateness:
 def run_node(node_class, args=None, fatal: tuple = ()) -> int:
     """Spin one node with `spin_loop` until Ctrl-C or shutdown.
 
-    A `fatal` error ends it with exit code 1 and the error on stderr.
+    A `fatal` error, or a parameter given on the command line that its
+    declaration refuses (out of range, wrong type), ends it with exit code 1 and
+    the error on stderr.
     """
     rclpy.init(args=args)
     node = None
     try:
         node = node_class()
+        apply_thread_priority(node)
         # Everything built so far (modules, weights, the node) lives for the
         # process: keep it out of the collector's full passes, which would
         # otherwise walk it every time and stall the loop for milliseconds.
@@ -148,6 +178,11 @@ def run_node(node_class, args=None, fatal: tuple = ()) -> int:
         spin_loop(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ParameterException as error:
+        # rclpy words it '<reason>: <parameter name>'; name first reads better.
+        reason, _, name = str(error).rpartition(': ')
+        print(f'{node_class.__name__}: parameter {name}: {reason}', file=sys.stderr)
+        return 1
     except fatal as error:
         print(f'{node_class.__name__}: {error}', file=sys.stderr)
         return 1

@@ -45,7 +45,7 @@ from zeus_ros.core.inference import InferenceModel  # noqa: E402
 from zeus_ros.core.window import ContextWindow  # noqa: E402
 from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
-from zeus_ros.ros_util import LOOP_QOS, stamp_ns  # noqa: E402
+from zeus_ros.ros_util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
 
 
 def in_process_rate(weights: Path, steps: int, samples: int = 5) -> float:
@@ -116,9 +116,7 @@ class Observer:
 
     def call(self, client, request):
         client.wait_for_service(timeout_sec=30.0)
-        future = client.call_async(request)
-        self.spin_until(future.done, 30.0)
-        return future.result()
+        return call_service(client, request, self.spin_until)
 
 
 def episode_rate(observer: Observer, reset_client, seed: int) -> float:
@@ -189,6 +187,7 @@ def realtime_figures(observer: Observer, param_client, seconds: float, period_s:
             'sim_tick_late_ms_p999': float(sim['tick_late_ms_p999']),
             'sim_tick_late_ms_max': float(sim['tick_late_ms_max']),
             'sim_missed_ticks': int(sim['missed_ticks']),
+            'sim_unanswered_ticks': int(sim['unanswered_ticks']),
             'jitter_ms_p50': float(np.percentile(jitter, 50)),
             'jitter_ms_p99': float(np.percentile(jitter, 99)),
             'jitter_ms_max': float(jitter.max()),

@@ -1,7 +1,7 @@
 """Start sim_node, context_node and policy_node with a family, a checkpoint and a mode.
 
 Usage: ros2 launch zeus_ros zeus.launch.py weights:=<checkpoint> family:=walker-walk-v0
-mode:=lockstep
+mode:=lockstep [thread_priority:=50]
 """
 
 import os
@@ -20,13 +20,14 @@ def generate_launch_description():
     family = LaunchConfiguration('family')
     weights = LaunchConfiguration('weights')
     mode = LaunchConfiguration('mode')
+    priority = {'thread_priority': LaunchConfiguration('thread_priority')}
     nodes = [
         Node(package='zeus_ros', executable='sim_node', name='sim_node', output='screen',
-             parameters=[config, {'family': family, 'mode': mode}]),
+             parameters=[config, {'family': family, 'mode': mode}, priority]),
         Node(package='zeus_ros', executable='context_node', name='context_node',
-             output='screen', parameters=[config, {'weights': weights}]),
+             output='screen', parameters=[config, {'weights': weights}, priority]),
         Node(package='zeus_ros', executable='policy_node', name='policy_node',
-             output='screen', parameters=[config, {'weights': weights}]),
+             output='screen', parameters=[config, {'weights': weights}, priority]),
     ]
     # Like bringup: when one node ends, the whole launch ends.
     shutdown_on_exit = [
@@ -40,6 +41,9 @@ def generate_launch_description():
         DeclareLaunchArgument('weights', description='checkpoint directory'),
         DeclareLaunchArgument('mode', default_value='lockstep',
                               description='lockstep or realtime'),
+        DeclareLaunchArgument('thread_priority', default_value='0',
+                              description='SCHED_FIFO priority of every node (1-99; 0 = '
+                                          'normal scheduler); 50 suits realtime mode'),
         *nodes,
         *shutdown_on_exit,
     ])

@@ -83,6 +83,7 @@ class SimNode(Node):
         self.awaited_since = 0.0
         self.latest_action = np.zeros(self.env.action_dim)
         self.latest_action_time = -np.inf
+        self.latest_action_stamp = -1   # realtime: the state the latest command answers
         self.counters = {'rejected': 0, 'stale': 0, 'timeouts': 0, 'instabilities': 0}
         self.warnings = ThrottledWarnings(self.get_logger())
         self.step_rate = RateMeter()  # steps/s; latency = state published -> command in
@@ -157,6 +158,7 @@ class SimNode(Node):
             action = np.zeros(self.env.action_dim)
         if self.mode == 'realtime':
             self.latest_action, self.latest_action_time = action, time.monotonic()
+            self.latest_action_stamp = stamp_ns(msg.header)
             return
         if stamp_ns(msg.header) != self.awaited_ns:
             self.counters['stale'] += 1
@@ -174,7 +176,8 @@ class SimNode(Node):
         now = time.monotonic()
         # Ticks stay on an absolute schedule (no drift); a tick more than a
         # period late is a missed deadline, and the schedule restarts from now.
-        self.tick_lateness.record(now - self.next_tick, self.tick_period)
+        answered = self.awaited_ns is None or self.latest_action_stamp == self.awaited_ns
+        self.tick_lateness.record(now - self.next_tick, self.tick_period, answered)
         self.next_tick += self.tick_period
         if self.next_tick <= now:
             self.next_tick = now + self.tick_period

@@ -9,7 +9,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
-from zeus_ros.ros_util import stamp_ns as stamp_key
+from zeus_ros.ros_util import call_service, stamp_ns as stamp_key
 
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -52,9 +52,9 @@ class LockstepDriver:
         return self._pair(self.current)
 
     def _call(self, client, request):
-        future = client.call_async(request)
-        assert spin_until(self.node, future.done, self.timeout), 'service call timed out'
-        return future.result()
+        return call_service(client, request,
+                            lambda done, seconds: spin_until(self.node, done, seconds),
+                            self.timeout)
 
     def _pair(self, key):
         return self.states.get(key), self.steps.get(key)

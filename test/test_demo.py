@@ -32,3 +32,12 @@ def test_short_demo_records_every_topic_and_plots(small_checkpoint, tmp_path):
     assert sum(s['steps'] for s in segments) >= 150
     png = (out / 'demo.png').read_bytes()
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 10_000
+
+
+def test_demo_and_bringup_refuse_missing_weights_in_one_line(tmp_path):
+    for module in ('zeus_ros.demo', 'zeus_ros.bringup'):
+        result = subprocess.run([sys.executable, '-m', module, '--weights', str(tmp_path)],
+                                cwd=REPO, capture_output=True, text=True, timeout=60)
+        assert result.returncode == 1
+        assert f'no checkpoint at {tmp_path}' in result.stderr
+        assert 'Traceback' not in result.stderr

@@ -7,6 +7,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 from zeus_msgs.msg import Context, StepInfo
 from zeus_msgs.srv import Reset
+from zeus_ros.ros_util import call_service
 
 QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -58,12 +59,10 @@ def test_reset_service_round_trip(ros_node, spawn):
     spawn(helper_script('echo_node.py'), 'echo')
     client = ros_node.create_client(Reset, 'echo/reset')
     assert client.wait_for_service(timeout_sec=20.0), 'echo/reset never appeared'
-    future = client.call_async(Reset.Request(seed=7, param_names=['friction'],
-                                             param_values=[1.7]))
-    assert spin_until(ros_node, future.done, 10.0)
-    response = future.result()
+    def wait(done, seconds):
+        return spin_until(ros_node, done, seconds)
+    response = call_service(client, Reset.Request(seed=7, param_names=['friction'],
+                                                  param_values=[1.7]), wait)
     assert response.success is True
     assert response.message == 'seed=7;friction=1.7'
-    future = client.call_async(Reset.Request(seed=-1))
-    assert spin_until(ros_node, future.done, 10.0)
-    assert future.result().success is False
+    assert call_service(client, Reset.Request(seed=-1), wait).success is False

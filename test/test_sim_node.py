@@ -155,6 +155,9 @@ def test_realtime_mode_keeps_its_rate_and_switches_live(sim, ros_node):
     """Realtime steps on its own schedule; `mode` switches either way while running."""
     _, driver = sim(family='cheetah-run-v0', mode='realtime', command_timeout=0.05)
     period = ParamEnv('cheetah-run-v0').control_timestep
+    reports = []
+    ros_node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: reports.extend(
+        {kv.key: kv.value for kv in s.values} for s in m.status if 'sim_node' in s.name), 10)
 
     def steps_during(seconds):
         first = len(driver.steps)
@@ -164,6 +167,9 @@ def test_realtime_mode_keeps_its_rate_and_switches_live(sim, ros_node):
     count = steps_during(2.0)
     assert 0.8 * 2.0 / period <= count <= 1.1 * 2.0 / period, count
     assert not any(any(s.applied_action) for s in list(driver.steps.values())[-20:])
+    # ...and every one of those ticks is a controller deadline missed.
+    assert spin_until(ros_node, lambda: reports and int(reports[-1]['ticks']) > 50, 5.0)
+    assert reports[-1]['unanswered_ticks'] == reports[-1]['ticks'], reports[-1]
     # Switched to lockstep, it waits for commands (a zero action after the 50 ms
     # timeout), so it slows down from 100 to at most 20 steps per second.
     assert driver.set_param('mode', 'lockstep').successful
@@ -202,3 +208,19 @@ def test_a_bad_startup_parameter_ends_the_node_with_the_reason(spawn, param, val
     assert proc.proc.wait(30) == 1
     assert f'parameter {param}:' in proc.output()
     assert 'Traceback' not in proc.output()
+
+
+def test_tick_lateness_counts_both_kinds_of_missed_deadline():
+    from zeus_ros.ros_util import TickLateness
+    stats = TickLateness()
+    period = 0.01
+    for late, answered in ((0.0001, True), (0.0004, True), (0.0002, False), (0.012, True)):
+        stats.record(late, period, answered)
+    report = stats.report()
+    assert report['ticks'] == 4
+    assert report['missed_ticks'] == 1        # the one more than a period late
+    assert report['unanswered_ticks'] == 1    # the one whose command had not come
+    assert report['tick_late_ms_p50'] == '0.25'   # 0.2 ms lies in the 0.20-0.25 ms bin
+    assert float(report['tick_late_ms_max']) == pytest.approx(12.0)
+    stats.restart()
+    assert stats.report() == {}

@@ -39,3 +39,38 @@ def test_ruff_lint_clean():
     result = subprocess.run(['ruff', 'check', '--no-cache', str(REPO)], cwd=REPO,
                             capture_output=True, text=True)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_launch_file_declares_every_argument_it_uses_and_is_installed():
+    # `launch` is not on PyPI, so the file cannot be run here; what can break
+    # silently is an argument used but never declared (launch then fails at
+    # start) and the file or its config missing from the install.
+    import ast
+    tree = ast.parse((REPO / 'launch' / 'zeus.launch.py').read_text())
+    calls = {'LaunchConfiguration': set(), 'DeclareLaunchArgument': set()}
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                and node.func.id in calls):
+            calls[node.func.id].add(node.args[0].value)
+    assert calls['LaunchConfiguration'] == calls['DeclareLaunchArgument']
+    assert {'family', 'weights', 'mode', 'thread_priority'} <= calls['LaunchConfiguration']
+    share = Path(get_package_share_directory('zeus_ros'))
+    assert (share / 'launch' / 'zeus.launch.py').is_file()
+    assert (share / 'config' / 'zeus.yaml').is_file()
+
+
+def test_config_yaml_is_what_the_sim_node_runs_with(spawn, ros_node):
+    import yaml
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.parameter import parameter_value_to_python
+    from conftest import installed_exe, spin_until
+    from zeus_ros.ros_util import call_service
+    config = REPO / 'config' / 'zeus.yaml'
+    expected = yaml.safe_load(config.read_text())['sim_node']['ros__parameters']
+    spawn([installed_exe('sim_node'), '--ros-args', '--params-file', config], 'sim_node')
+    client = ros_node.create_client(GetParameters, '/sim_node/get_parameters')
+    assert spin_until(ros_node, client.service_is_ready, 30.0), 'sim_node did not come up'
+    response = call_service(client, GetParameters.Request(names=list(expected)),
+                            lambda done, seconds: spin_until(ros_node, done, seconds))
+    values = [parameter_value_to_python(v) for v in response.values]
+    assert dict(zip(expected, values, strict=True)) == expected

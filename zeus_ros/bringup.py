@@ -10,7 +10,6 @@ that node's code. The family defaults to the one the weights were trained for.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 import signal
@@ -41,10 +40,10 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def node_commands(args: argparse.Namespace) -> dict[str, list[str]]:
     """Build each node's command line (python -m, so no install layout is assumed)."""
+    # Checked here, so that bad weights give one clear line, not three node failures.
+    from zeus_ros.checkpoint import load_metadata
     weights = str(Path(args.weights).resolve())
-    family = args.family
-    if family is None:
-        family = json.loads((Path(weights) / 'metadata.json').read_text())['family']
+    family = args.family or load_metadata(weights)['family']
     sim_params = {'family': family, 'mode': args.mode, 'seed': args.seed,
                   'real_time_factor': args.real_time_factor,
                   'command_timeout': args.command_timeout}
@@ -91,7 +90,13 @@ class Bringup:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    bringup = Bringup(node_commands(args))
+    from zeus_ros.checkpoint import CheckpointError
+    try:
+        commands = node_commands(args)
+    except CheckpointError as error:
+        print(f'bringup: {error}', file=sys.stderr)
+        return 1
+    bringup = Bringup(commands)
     stop_requested = []
     signal.signal(signal.SIGTERM, lambda *_: stop_requested.append(True))
     try:

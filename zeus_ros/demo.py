@@ -29,10 +29,11 @@ from zeus_msgs.msg import Context, StepInfo  # noqa: E402
 from zeus_msgs.srv import Reset  # noqa: E402
 
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
+from zeus_ros.checkpoint import CheckpointError, load_metadata  # noqa: E402
 from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
 from zeus_ros.recording import McapRecorder  # noqa: E402
-from zeus_ros.ros_util import LOOP_QOS, stamp_ns  # noqa: E402
+from zeus_ros.ros_util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
 
 RECORDED_TOPICS = {
     '/joint_states': 'sensor_msgs/msg/JointState',
@@ -104,10 +105,10 @@ class DemoRun:
     def call(self, client, request, timeout: float = 30.0):
         if not client.wait_for_service(timeout_sec=timeout):
             raise RuntimeError(f'{client.srv_name} is not available')
-        future = client.call_async(request)
-        if not self.spin_until(future.done, timeout):
-            raise RuntimeError(f'{client.srv_name} did not answer')
-        return future.result()
+        try:
+            return call_service(client, request, self.spin_until, timeout)
+        except TimeoutError as error:
+            raise RuntimeError(str(error)) from None
 
     def loop_closed(self) -> bool:
         return any(any(s.applied_action) for s in self.steps[-3:])
@@ -137,6 +138,8 @@ class DemoRun:
                 break
             time.sleep(0.002)
         self.spin_until(lambda: False, 0.3)  # let the last contexts arrive
+        # The nodes report at 1 Hz: a short run must still record a report.
+        self.spin_until(lambda: self.recorder.counts.get('/diagnostics', 0) > 0, 2.0)
         return episode
 
 
@@ -192,7 +195,11 @@ def plot(series: dict, param_name: str, path: Path) -> None:
 def main(argv=None) -> int:
     args = parse_args(argv)
     schedule = parse_schedule(args.schedule)
-    metadata = json.loads((Path(args.weights) / 'metadata.json').read_text())
+    try:
+        metadata = load_metadata(args.weights)
+    except CheckpointError as error:
+        print(f'demo: {error}', file=sys.stderr)
+        return 1
     param_name, k = metadata['param_name'], int(metadata['context']['k'])
     args.out.mkdir(parents=True, exist_ok=True)
     bringup = Bringup(node_commands(bringup_args(

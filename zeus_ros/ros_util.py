@@ -64,6 +64,25 @@ def apply_thread_priority(node) -> int:
     return priority
 
 
+def call_service(client, request, wait, timeout: float = 30.0, attempt_s: float = 3.0):
+    """Call a service and return its response, re-sending a request left unanswered.
+
+    Discovery is not symmetric: a client can see a new server (so
+    `wait_for_service` passes) before the server has matched the client's
+    response reader, and the answer to a request sent in that moment is lost.
+    Each attempt waits `attempt_s`; `wait(predicate, seconds) -> bool` is
+    whatever spins the client's node. Only for requests that may be repeated
+    (a repeated reset starts one more episode; the response names the last).
+    """
+    deadline = time.monotonic() + timeout
+    while (remaining := deadline - time.monotonic()) > 0:
+        future = client.call_async(request)
+        if wait(future.done, min(attempt_s, remaining)):
+            return future.result()
+        client.remove_pending_request(future)
+    raise TimeoutError(f'{client.srv_name} did not answer within {timeout:g} s')
+
+
 def diagnostic_array(node, name: str, hardware_id: str, values: dict,
                      problem: str | None = None) -> DiagnosticArray:
     """One status for `node`: OK, or WARN with `problem` as its message."""
@@ -117,7 +136,10 @@ class TickLateness:
     """How late scheduled ticks start, since the schedule was (re)started.
 
     A fixed-bin histogram (50 us bins up to 100 ms): O(1) per tick, and the
-    percentiles of every tick so far are cheap to read at any time.
+    percentiles of every tick so far are cheap to read at any time. Two kinds
+    of missed deadline are counted: a tick that starts more than a period late
+    (the sim's own), and a tick at which the command answering the previous
+    state had not arrived (the controller's: the step applies an older one).
     """
 
     BIN_S = 50e-6
@@ -128,15 +150,17 @@ class TickLateness:
 
     def restart(self) -> None:
         self.counts = [0] * self.BINS
-        self.ticks = self.missed = 0
+        self.ticks = self.missed = self.unanswered = 0
         self.max_s = 0.0
 
-    def record(self, late_s: float, period_s: float) -> None:
+    def record(self, late_s: float, period_s: float, answered: bool = True) -> None:
         self.counts[min(max(int(late_s / self.BIN_S), 0), self.BINS - 1)] += 1
         self.ticks += 1
         self.max_s = max(self.max_s, late_s)
         if late_s > period_s:
             self.missed += 1
+        if not answered:
+            self.unanswered += 1
 
     def percentile_ms(self, q: float) -> float:
         """Upper edge of the bin holding the q-th percentile tick, in ms."""
@@ -153,7 +177,8 @@ class TickLateness:
         return {'ticks': self.ticks, 'tick_late_ms_p50': f'{self.percentile_ms(50):.2f}',
                 'tick_late_ms_p99': f'{self.percentile_ms(99):.2f}',
                 'tick_late_ms_p999': f'{self.percentile_ms(99.9):.2f}',
-                'tick_late_ms_max': f'{1e3 * self.max_s:.3f}', 'missed_ticks': self.missed}
+                'tick_late_ms_max': f'{1e3 * self.max_s:.3f}', 'missed_ticks': self.missed,
+                'unanswered_ticks': self.unanswered}
 
 
 def run_node(node_class, args=None, fatal: tuple = ()) -> int:

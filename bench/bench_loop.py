@@ -23,6 +23,7 @@ Prints a table and writes the figures as JSON (--json).
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 from pathlib import Path
@@ -202,6 +203,7 @@ def run_graph(weights: Path, mode: str, measure, thread_priority: int = 0) -> di
     rclpy.init()
     node = rclpy.create_node('zeus_bench')
     observer = Observer(node)
+    gc.freeze()   # as the nodes do: a full collection would stall the observer
     try:
         return measure(observer, node)
     finally:

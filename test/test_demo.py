@@ -17,6 +17,7 @@ def test_short_demo_records_every_topic_and_plots(small_checkpoint, tmp_path):
         cwd=REPO, capture_output=True, text=True, timeout=240)
     assert result.returncode == 0, result.stdout + result.stderr
     assert 'total return' in result.stdout
+    assert 'not received' not in result.stdout, result.stdout   # every step recorded
 
     counts, friction_seen = dict.fromkeys(RECORDED_TOPICS, 0), set()
     for message in read_ros2_messages(out / 'demo.mcap'):

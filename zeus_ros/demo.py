@@ -13,6 +13,7 @@ Foxglove) and `demo.png` (true vs estimated parameter, reward over time).
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 from pathlib import Path
@@ -208,6 +209,10 @@ def main(argv=None) -> int:
     rclpy.init()
     node = rclpy.create_node('zeus_demo')
     demo = DemoRun(node, param_name, args.out)
+    # The loop's publishers keep 10 messages (about 20 ms at full speed): a
+    # full garbage collection over the imported modules would outlast that
+    # and lose steps. What exists now lives for the process anyway.
+    gc.freeze()
     started = time.monotonic()
     try:
         episode = demo.run(schedule, args.seed, args.steps, args.timeout)

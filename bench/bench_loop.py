@@ -42,6 +42,7 @@ from sim_node.env import ParamEnv  # noqa: E402
 from zeus_msgs.msg import StepInfo  # noqa: E402
 from zeus_msgs.srv import Reset  # noqa: E402
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
+from zeus_ros.checkpoint import load_metadata  # noqa: E402
 from zeus_ros.core.inference import InferenceModel  # noqa: E402
 from zeus_ros.core.window import ContextWindow  # noqa: E402
 from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
@@ -234,7 +235,7 @@ def main(argv=None) -> int:
                              'scheduler (figures prefixed normal_sched_)')
     parser.add_argument('--json', type=Path, help='write the figures here')
     args = parser.parse_args(argv)
-    metadata = json.loads((args.weights / 'metadata.json').read_text())
+    metadata = load_metadata(args.weights)
     figures = {'weights': str(args.weights), 'family': metadata['family'],
                'machine': f'{os.cpu_count()} cores', 'load_avg_start': os.getloadavg()[0]}
     figures['inprocess_steps_per_s'] = in_process_rate(args.weights, args.inprocess_steps)
@@ -247,7 +248,7 @@ def main(argv=None) -> int:
     figures['lockstep_ratio_to_inprocess'] = (figures['lockstep_steps_per_s']
                                               / figures['inprocess_steps_per_s'])
     rt_weights = args.realtime_weights or args.weights
-    rt_meta = json.loads((rt_weights / 'metadata.json').read_text())
+    rt_meta = load_metadata(rt_weights)
     period = float(rt_meta['control_timestep'])
     figures['realtime_family'] = rt_meta['family']
     figures['realtime_period_ms'] = period * 1e3

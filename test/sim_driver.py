@@ -12,6 +12,8 @@ from zeus_msgs.srv import Reset
 from zeus_ros.ros_util import call_service, stamp_ns as stamp_key
 
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+WALKER_ACTUATORS = ('right_hip', 'right_knee', 'right_ankle', 'left_hip', 'left_knee',
+                    'left_ankle')
 
 
 

@@ -4,7 +4,7 @@ from conftest import installed_exe, REPO, spin_until
 import numpy as np
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sim_driver import LockstepDriver
+from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.evaluate import run_episode
 from zeus_ros.core.inference import InferenceModel
@@ -12,7 +12,6 @@ from zeus_ros.core.inference import InferenceModel
 FAMILY = 'walker-walk-v0'
 WALKER_WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
 QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-ACTUATORS = ('right_hip', 'right_knee', 'right_ankle', 'left_hip', 'left_knee', 'left_ankle')
 
 
 @pytest.fixture

@@ -8,11 +8,10 @@ from conftest import installed_exe, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
 import pytest
-from sim_driver import LockstepDriver
+from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
 from sim_node.env import ParamEnv
 
 FAMILY = 'walker-walk-v0'
-ACTUATORS = ('right_hip', 'right_knee', 'right_ankle', 'left_hip', 'left_knee', 'left_ankle')
 
 
 @pytest.fixture

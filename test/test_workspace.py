@@ -1,12 +1,17 @@
 """The colcon install is what `ros2 run` expects, and every Python source lints clean."""
 
+import ast
 import os
 from pathlib import Path
 import re
 import subprocess
 
 from ament_index_python.packages import get_package_share_directory, get_packages_with_prefixes
-from conftest import INSTALL_BIN, REPO
+from conftest import INSTALL_BIN, installed_exe, REPO, spin_until
+from rcl_interfaces.srv import GetParameters
+from rclpy.parameter import parameter_value_to_python
+import yaml
+from zeus_ros.ros_util import call_service
 
 
 def declared_executables():
@@ -45,7 +50,6 @@ def test_launch_file_declares_every_argument_it_uses_and_is_installed():
     # `launch` is not on PyPI, so the file cannot be run here; what can break
     # silently is an argument used but never declared (launch then fails at
     # start) and the file or its config missing from the install.
-    import ast
     tree = ast.parse((REPO / 'launch' / 'zeus.launch.py').read_text())
     calls = {'LaunchConfiguration': set(), 'DeclareLaunchArgument': set()}
     for node in ast.walk(tree):
@@ -60,11 +64,6 @@ def test_launch_file_declares_every_argument_it_uses_and_is_installed():
 
 
 def test_config_yaml_is_what_the_sim_node_runs_with(spawn, ros_node):
-    import yaml
-    from rcl_interfaces.srv import GetParameters
-    from rclpy.parameter import parameter_value_to_python
-    from conftest import installed_exe, spin_until
-    from zeus_ros.ros_util import call_service
     config = REPO / 'config' / 'zeus.yaml'
     expected = yaml.safe_load(config.read_text())['sim_node']['ros__parameters']
     spawn([installed_exe('sim_node'), '--ros-args', '--params-file', config], 'sim_node')

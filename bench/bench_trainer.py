@@ -34,14 +34,15 @@ class _Timed:
 
 
 def run(family: str, profile: str, timesteps: int, warmup: int,
-        threads: int | None = None) -> dict:
+        threads: int | None = None, method: str = 'zeus') -> dict:
     """Measure `timesteps` steady-state timesteps; return the figures."""
     out = Path(tempfile.mkdtemp(prefix='zeus_bench_'))
     overrides = [f'init_steps={warmup}', 'replay_capacity=100000']
     if threads is not None:
         overrides.append(f'num_threads={threads}')
     args = build_parser().parse_args(['--family', family, '--profile', profile,
-                                      '--out', str(out), '--set', *overrides])
+                                      '--method', method, '--out', str(out),
+                                      '--set', *overrides])
     tr = Trainer(args)
     cfg = tr.cfg
     while tr.timestep < warmup:  # uniform exploration fills the buffer
@@ -87,12 +88,15 @@ def main(argv=None) -> None:
     p.add_argument('--profile', default='cpu', choices=('cpu', 'paper'))
     p.add_argument('--timesteps', type=int, default=300)
     p.add_argument('--warmup', type=int, default=200)
+    p.add_argument('--method', nargs='*', default=['zeus'], help='context methods to compare')
     p.add_argument('--threads', type=int, nargs='*', default=[None],
                    help="torch threads to compare, one run each (default: the profile's)")
     args = p.parse_args(argv)
-    for family, threads in ((f, t) for f in args.family for t in args.threads):
-        r = run(family, args.profile, args.timesteps, args.warmup, threads)
-        print(f"{r['family']} profile={r['profile']} tasks={r['tasks']} batch={r['batch']} "
+    runs = ((f, t, m) for f in args.family for t in args.threads for m in args.method)
+    for family, threads, method in runs:
+        r = run(family, args.profile, args.timesteps, args.warmup, threads, method)
+        print(f"{method} {r['family']} profile={r['profile']} tasks={r['tasks']} "
+              f"batch={r['batch']} "
               f"hidden={r['hidden']} threads={r['threads']}: {r['env_steps']} env steps in "
               f"{r['seconds']:.1f} s = {r['env_steps_per_s']:.0f} env steps/s (with updates)")
         for k, v in r['split'].items():

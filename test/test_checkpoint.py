@@ -20,12 +20,14 @@ from zeus_ros.train import env_info, make_agent
 FAMILY = 'finger-spin-v0'
 
 
-def tiny(**kw):
+def tiny(method='zeus', **kw):
     base = dict(hidden_dim=32, context_dim=6, feature_dim=8, encoder_hidden=16,
                 context_hidden=16, dynamics_hidden=16, decoder_hidden=8,
                 batch_size_per_task=2, replay_capacity=100, num_threads=1)
+    if method == 'zeus-id':
+        base['context_length'] = 5
     base.update(kw)
-    return make_config(FAMILY, 'cpu', **base)
+    return make_config(FAMILY, 'cpu', method, **base)
 
 
 @pytest.fixture(scope='module')
@@ -44,9 +46,9 @@ def trained_agent(env, cfg=None):
     for _ in range(40):
         a = rng.uniform(-1, 1, env.action_dim)
         res = env.step(a)
-        before = w.arrays()
+        continues = w.fill > 0
         w.push(obs, a, res.reward, res.observation)
-        replay.add(obs, a, res.reward, res.observation, False, before, w.arrays(), 0, 0.05)
+        replay.add(obs, a, res.reward, res.observation, False, 0, 0.05, continues)
         obs = res.observation
     for _ in range(3):
         agent.update(replay.sample(16))
@@ -106,7 +108,8 @@ def test_resume_restores_training_state(env, saved):
     for i in s1:
         assert torch.equal(s1[i]['exp_avg_sq'], s2[i]['exp_avg_sq'])
     assert len(fresh_replay) == len(replay) == 40
-    np.testing.assert_array_equal(fresh_replay.ctx_rows[:40], replay.ctx_rows[:40])
+    idx = np.arange(40)
+    np.testing.assert_array_equal(fresh_replay.windows(idx)[0][0], replay.windows(idx)[0][0])
     # identical next update from identical state
     torch.manual_seed(5)
     b = replay.sample(8)
@@ -114,7 +117,7 @@ def test_resume_restores_training_state(env, saved):
     m1 = agent.update(b)
     torch.manual_seed(6)
     m2 = fresh.update(b)
-    assert m1 == m2
+    assert {k: float(v) for k, v in m1.items()} == {k: float(v) for k, v in m2.items()}
 
 
 def test_resume_refuses_other_config(env, saved):
@@ -183,3 +186,42 @@ def test_never_uses_pickle():
     for mod in (ck, inf):
         src = open(mod.__file__).read()
         assert 'torch.load(' not in src and 'import pickle' not in src
+
+
+@pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'zeus-no-context-loss'])
+def test_every_method_round_trips_and_resumes(env, tmp_path, method):
+    agent, replay = trained_agent(env, tiny(method))
+    path = save_checkpoint(tmp_path / method, agent, env_info(env),
+                           {'timestep': 1, 'env_steps': 1, 'update_step': 3, 'episodes': 0},
+                           None, replay)
+    model = InferenceModel.load(path)
+    assert model.method_name == method and model.context_dim == agent.method.context_dim
+    rows, mask = ContextWindow(model.k, env.obs_dim, env.action_dim).arrays()
+    obs = env.reset(seed=1)
+    latent = model.context(rows, mask, true_param=0.05)
+    expected = agent.act(obs, rows, mask, [0.05], deterministic=True)
+    np.testing.assert_allclose(model.act(obs, latent), expected, atol=1e-6)
+    fresh = make_agent(tiny(method), env)
+    load_training_checkpoint(path, fresh, ReplayBuffer(100, env.obs_dim, env.action_dim,
+                                                       agent.config.context_length,
+                                                       agent.row_dim))
+    for name, module in agent.modules().items():
+        for p, q in zip(module.state_dict().values(),
+                        fresh.modules()[name].state_dict().values(), strict=True):
+            assert torch.equal(p, q), name
+
+
+def test_non_finite_weights_refused(saved, tmp_path):
+    _, _, path = saved
+    bad = tmp_path / 'nan'
+    shutil.copytree(path, bad)
+    tensors = load_file(str(bad / MODEL_FILE))
+    key = next(k for k in tensors if k.startswith('actor.'))
+    tensors[key] = torch.full_like(tensors[key], float('nan'))
+    save_file(tensors, str(bad / MODEL_FILE))
+    meta = json.loads((bad / 'metadata.json').read_text())
+    meta['files'][MODEL_FILE] = {'sha256': sha256_file(bad / MODEL_FILE),
+                                 'bytes': (bad / MODEL_FILE).stat().st_size}
+    (bad / 'metadata.json').write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match='non-finite'):
+        InferenceModel.load(bad)

@@ -4,43 +4,57 @@ import numpy as np
 import pytest
 import torch
 
+from zeus_ros.core.agent import Agent
 from zeus_ros.core.config import make_config
+from zeus_ros.core.methods import ParamScale
+from zeus_ros.core.methods.zeus import w2_diag_gaussians
 from zeus_ros.core.networks import ContextEncoder
 from zeus_ros.core.replay import ReplayBuffer
 from zeus_ros.core.window import ContextWindow, row_dim
-from zeus_ros.core.zeus import w2_diag_gaussians, ZeusAgent
 
 OBS, ACT, K = 5, 2, 4
 ROW = row_dim(OBS, ACT)
 
 
-def tiny_config(**kw):
+def tiny_config(method='zeus', **kw):
     base = dict(hidden_dim=32, context_dim=6, feature_dim=8, encoder_hidden=16,
                 context_hidden=16, dynamics_hidden=16, decoder_hidden=8, context_length=K,
                 batch_size_per_task=4, replay_capacity=200, num_threads=1)
     base.update(kw)
-    return make_config('walker-walk-v0', 'cpu', **base)
+    return make_config('walker-walk-v0', 'cpu', method, **base)
 
 
-def make_agent(**kw):
+def make_agent(method='zeus', **kw):
     torch.manual_seed(0)
-    return ZeusAgent(tiny_config(**kw), OBS, ACT, param_offset=0.8, param_scale=0.55)
+    return Agent(tiny_config(method, **kw), OBS, ACT, ParamScale(0.8, 0.55))
+
+
+def fill_replay(buf, steps=60, tasks=3, seed=0):
+    """Interleave episodes of several tasks as the trainer does; return the true windows."""
+    rng = np.random.default_rng(seed)
+    windows = [ContextWindow(K, OBS, ACT) for _ in range(tasks)]
+    truth = []
+    for _ in range(steps):
+        for i, w in enumerate(windows):
+            if rng.random() < 0.1:
+                w.clear()  # an episode boundary
+            s, a, r, s2 = rng.normal(size=OBS), rng.uniform(-1, 1, ACT), rng.normal(), \
+                rng.normal(size=OBS)
+            before, continues = w.arrays(), w.fill > 0
+            w.push(s, a, r, s2)
+            buf.add(s, a, r, s2, False, i, 0.8 + 0.05 * i, continues)
+            truth.append((before, w.arrays()))
+    return truth
 
 
 def make_batch(n=16, seed=0):
-    rng = np.random.default_rng(seed)
     buf = ReplayBuffer(64, OBS, ACT, K, ROW, seed=seed)
-    for i in range(n):
-        w = ContextWindow(K, OBS, ACT)
-        for _ in range(i % (K + 2)):
-            w.push(rng.normal(size=OBS), rng.uniform(-1, 1, ACT), rng.normal(),
-                   rng.normal(size=OBS))
-        before = w.arrays()
-        s, a, r, s2 = rng.normal(size=OBS), rng.uniform(-1, 1, ACT), rng.normal(), \
-            rng.normal(size=OBS)
-        w.push(s, a, r, s2)
-        buf.add(s, a, r, s2, False, before, w.arrays(), i % 8, 0.8 + 0.05 * (i % 8))
+    fill_replay(buf, steps=20, tasks=3, seed=seed)
     return buf.sample(n)
+
+
+def module(agent, name):
+    return agent.modules()[name]
 
 
 def grads_of(module):
@@ -136,9 +150,9 @@ def test_critic_loss_trains_critic_phi_psi_only():
     loss, _, _, _ = agent.critic_loss(b)
     loss.backward()
     for name in ('critic', 'phi', 'psi'):
-        assert has_grad(getattr(agent, name)), name
+        assert has_grad(module(agent, name)), name
     for name in ('actor', 'T', 'R', 'decoder', 'critic_target', 'phi_target', 'psi_target'):
-        assert no_grad(getattr(agent, name)), name
+        assert no_grad(module(agent, name)), name
     assert agent.log_alpha.grad is None
 
 
@@ -151,7 +165,7 @@ def test_actor_loss_trains_actor_only_and_alpha_loss_alpha_only():
     actor_loss.backward(retain_graph=True)
     assert has_grad(agent.actor)
     for name in ('phi', 'psi', 'critic', 'T', 'R', 'decoder'):
-        assert no_grad(getattr(agent, name)), name
+        assert no_grad(module(agent, name)), name
     assert agent.log_alpha.grad is None
     agent.actor.zero_grad(set_to_none=True)
     alpha_loss.backward()
@@ -162,8 +176,8 @@ def test_actor_loss_trains_actor_only_and_alpha_loss_alpha_only():
 def test_context_target_carries_no_gradient():
     agent, b = make_agent(), make_batch()
     z = agent.phi(b.obs)
-    c = agent.psi(b.ctx_rows, b.ctx_mask)
-    d = agent.context_target(z, b.action, c, c.flip(0))
+    c = agent.method.psi(b.ctx_rows, b.ctx_mask)
+    d = agent.method.context_target(z, b.action, c, c.flip(0))
     assert not d.requires_grad
     assert (d >= 0).all() and d.abs().sum() > 0
 
@@ -173,24 +187,24 @@ def test_context_loss_trains_psi_only():
     zero_all(agent)
     with torch.no_grad():
         z = agent.phi(b.obs)
-    c = agent.psi(b.ctx_rows, b.ctx_mask)
-    loss = agent.context_loss(z, b.action, c, torch.randperm(c.shape[0]))
+    c = agent.method.psi(b.ctx_rows, b.ctx_mask)
+    loss = agent.method.context_loss(z, b.action, c, torch.randperm(c.shape[0]))
     loss.backward()
-    assert has_grad(agent.psi)
+    assert has_grad(agent.method.psi)
     for name in ('phi', 'T', 'R', 'critic', 'actor', 'decoder'):
-        assert no_grad(getattr(agent, name)), name
+        assert no_grad(module(agent, name)), name
 
 
 def test_model_loss_trains_psi_T_R_not_phi():
     agent, b = make_agent(), make_batch()
     zero_all(agent)
-    loss, _, metrics = agent.model_loss(b)
+    loss, _, metrics = agent.method.model_loss(b, agent.phi(b.obs).detach())
     loss.backward()
     assert 'context_loss' in metrics
     for name in ('psi', 'T', 'R'):
-        assert has_grad(getattr(agent, name)), name
+        assert has_grad(module(agent, name)), name
     for name in ('phi', 'critic', 'actor', 'decoder'):
-        assert no_grad(getattr(agent, name)), name
+        assert no_grad(module(agent, name)), name
 
 
 def test_alpha_psi_zero_context_loss_leaves_psi_untouched():
@@ -202,12 +216,12 @@ def test_alpha_psi_zero_context_loss_leaves_psi_untouched():
         if alpha_psi == 0.0:
             def boom(*args, **kwargs):
                 raise AssertionError('context loss evaluated with alpha_psi = 0')
-            agent.context_loss = boom
+            agent.method.context_loss = boom
         zero_all(agent)
-        loss, _, metrics = agent.model_loss(b, perm)
+        loss, _, metrics = agent.method.model_loss(b, agent.phi(b.obs).detach(), perm)
         loss.backward()
         assert ('context_loss' in metrics) == (alpha_psi > 0)
-        grads[alpha_psi] = {n: [p.grad.clone() for p in getattr(agent, n).parameters()]
+        grads[alpha_psi] = {n: [p.grad.clone() for p in module(agent, n).parameters()]
                             for n in ('psi', 'T', 'R')}
     # The context term changes psi's gradient, and only psi's: with it removed,
     # psi's gradient is exactly that of the dynamics + reward terms.
@@ -221,11 +235,11 @@ def test_alpha_psi_zero_context_loss_leaves_psi_untouched():
 def test_decoder_loss_does_not_move_psi():
     agent, b = make_agent(), make_batch()
     zero_all(agent)
-    c = agent.psi(b.ctx_rows, b.ctx_mask)
-    loss = agent.decoder_loss(c, b.param)
+    c = agent.method.psi(b.ctx_rows, b.ctx_mask)
+    loss = agent.method.decoder_loss(c, b.param)
     loss.backward()
-    assert has_grad(agent.decoder)
-    assert no_grad(agent.psi) and no_grad(agent.phi)
+    assert has_grad(agent.method.decoder)
+    assert no_grad(agent.method.psi) and no_grad(agent.phi)
 
 
 def test_update_moves_the_right_things_and_targets_lag():
@@ -239,7 +253,7 @@ def test_update_moves_the_right_things_and_targets_lag():
     assert all(torch.equal(p, q) for p, q in zip(
         before['critic_target'], agent.critic_target.parameters(), strict=True))
     m2 = agent.update(b)
-    assert 'actor_loss' in m2 and np.isfinite(list(m2.values())).all()
+    assert 'actor_loss' in m2 and np.isfinite([float(v) for v in m2.values()]).all()
     for name, params in before.items():
         moved = any(not torch.equal(p, q) for p, q in zip(
             params, agent.modules()[name].parameters(), strict=True))
@@ -275,3 +289,116 @@ def test_replay_stores_windows_task_and_param():
     assert torch.allclose(newest[:, :OBS], b.obs)
     assert torch.allclose(newest[:, -OBS:], b.next_obs)
     assert torch.allclose(newest[:, OBS + ACT], b.reward)
+
+
+@pytest.mark.parametrize('capacity', [500, 50])
+def test_replay_rebuilds_exactly_the_trainers_windows(capacity):
+    """Links, not copies: every sampled window equals ContextWindow's, ring overwrite too."""
+    buf = ReplayBuffer(capacity, OBS, ACT, K, ROW, seed=3)
+    truth = fill_replay(buf, steps=40, tasks=3, seed=3)
+    idx = np.arange(buf.size)
+    (cr, cm), (nr, nm) = buf.windows(idx)
+    first_kept = len(truth) - buf.size   # serial of slot 0's oldest survivor
+    for slot in idx:
+        serial = int(buf.serial[slot])
+        (tb, tbm), (ta, tam) = truth[serial]
+        n_before = int(cm[slot].sum())
+        # a window may only be shorter than the truth where the ring dropped its start
+        assert n_before == tbm.sum() or serial - 3 * n_before < first_kept + 3 * K
+        np.testing.assert_array_equal(cr[slot][:n_before], tb[tbm.sum() - n_before:tbm.sum()])
+        if n_before == tbm.sum():
+            np.testing.assert_array_equal(cr[slot], tb)
+            np.testing.assert_array_equal(nr[slot], ta)
+            np.testing.assert_array_equal(nm[slot], tam)
+
+
+def test_replay_state_round_trip_keeps_windows():
+    buf = ReplayBuffer(100, OBS, ACT, K, ROW, seed=1)
+    fill_replay(buf, steps=20, tasks=2, seed=1)
+    other = ReplayBuffer(100, OBS, ACT, K, ROW, seed=1)
+    other.load_state_arrays(buf.state_arrays())
+    idx = np.arange(buf.size)
+    for a, b in zip(buf.windows(idx), other.windows(idx), strict=True):
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+
+
+# -- the other methods ---------------------------------------------------------
+def test_sac_has_no_context_and_its_critic_trains_phi():
+    agent, b = make_agent('sac'), make_batch()
+    assert agent.method.context_dim == 0 and set(agent.inference_modules()) == {'phi', 'actor'}
+    zero_all(agent)
+    loss, _, c, _ = agent.critic_loss(b)
+    loss.backward()
+    assert c.shape == (b.obs.shape[0], 0)
+    assert has_grad(agent.critic) and has_grad(agent.phi)
+    assert agent.method.decode(c) is None
+
+
+def test_oracle_context_is_the_normalised_true_parameter():
+    agent, b = make_agent('oracle'), make_batch()
+    c = agent.method.encode(b.ctx_rows, b.ctx_mask, b.param)
+    assert torch.allclose(c[:, 0], (b.param - 0.8) / 0.55)
+    assert torch.allclose(agent.method.decode(c), c[:, 0])
+    with pytest.raises(ValueError):
+        agent.method.encode(b.ctx_rows, b.ctx_mask, None)
+    # different true values, same observation -> different actions (the policy sees it)
+    rows, mask = ContextWindow(K, OBS, ACT).arrays()
+    a1 = agent.act(np.ones(OBS), rows, mask, [0.8], deterministic=True)
+    a2 = agent.act(np.ones(OBS), rows, mask, [1.35], deterministic=True)
+    assert not np.allclose(a1, a2)
+
+
+def test_zeus_id_psi_gets_no_critic_gradient_and_model_loss_trains_it():
+    agent, b = make_agent('zeus-id', context_length=K), make_batch()
+    assert not agent.method.critic_trains_context
+    zero_all(agent)
+    loss, _, _, _ = agent.critic_loss(b)
+    loss.backward()
+    assert has_grad(agent.critic) and has_grad(agent.phi)
+    assert no_grad(agent.method.psi)
+    zero_all(agent)
+    loss, _, metrics = agent.method.model_loss(b)
+    loss.backward()
+    assert 'context_loss' in metrics
+    for name in ('psi', 'T', 'R'):
+        assert has_grad(module(agent, name)), name
+    for name in ('phi', 'critic', 'actor', 'decoder'):
+        assert no_grad(module(agent, name)), name
+
+
+def test_zeus_id_critic_grad_ablation_lets_the_critic_train_psi():
+    agent, b = make_agent('zeus-id', context_length=K, context_critic_grad=True), make_batch()
+    zero_all(agent)
+    loss, _, _, _ = agent.critic_loss(b)
+    loss.backward()
+    assert has_grad(agent.method.psi)
+
+
+def test_zeus_id_reads_deltas():
+    """With context_input='delta' psi sees s' - s, not s'.
+
+    Shifting s and s' together leaves the delta part unchanged, while the
+    raw-transition ablation sees the shift there.
+    """
+    from zeus_ros.core.methods.zeus_id import transition_features
+    rows = torch.randn(2, K, ROW)
+    shifted = rows.clone()
+    shifted[..., -OBS:] += 1.0
+    shifted[..., :OBS] += 1.0
+    d0, d1 = transition_features(rows, OBS, True), transition_features(shifted, OBS, True)
+    assert torch.allclose(d0[..., -OBS:], d1[..., -OBS:], atol=1e-6)
+    assert not torch.allclose(transition_features(shifted, OBS, False)[..., -OBS:],
+                              rows[..., -OBS:])
+
+
+@pytest.mark.parametrize('method', ['zeus', 'zeus-no-context-loss', 'sac', 'oracle', 'zeus-id'])
+def test_every_method_updates_and_acts(method):
+    kw = {'context_length': K} if method == 'zeus-id' else {}
+    agent, b = make_agent(method, **kw), make_batch()
+    for _ in range(2):
+        metrics = agent.update(b)
+    assert np.isfinite([float(v) for v in metrics.values()]).all()
+    rows, mask = ContextWindow(K, OBS, ACT).arrays()
+    a = agent.act(np.ones(OBS), rows, mask, [1.0], deterministic=True)
+    assert a.shape == (ACT,) and np.all(np.abs(a) <= 1)

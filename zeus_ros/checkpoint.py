@@ -143,9 +143,12 @@ def build_metadata(agent, env_info: dict, counters: dict) -> dict:
                           'range': [-1.0, 1.0]},
         'context': {'k': cfg.context_length, 'row_dim': agent.row_dim,
                     'row_layout': 'concat(s, a, [r], s_next) float32',
-                    'aggregation': cfg.aggregation, 'context_dim': cfg.context_dim,
+                    'aggregation': cfg.aggregation,
+                    'context_dim': agent.method.context_dim,
+                    'method': cfg.method,
+                    'needs_true_param': agent.method.needs_true_param,
                     'empty_window': 'zero latent'},
-        'param_normalisation': {'offset': agent.param_offset, 'scale': agent.param_scale,
+        'param_normalisation': {'offset': agent.param.offset, 'scale': agent.param.scale,
                                 'formula': '(value - offset) / scale',
                                 'train_values': list(env_info['train_values'])},
         'control_timestep': env_info.get('control_timestep'),
@@ -165,15 +168,16 @@ def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dic
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     model = {}
-    for name in ('phi', 'psi', 'actor', 'decoder'):
-        model.update(_prefixed(name, getattr(agent, name).state_dict()))
+    for name, module in agent.inference_modules().items():
+        model.update(_prefixed(name, module.state_dict()))
+    _refuse_non_finite(model, 'weights to save')
     save_file(model, str(tmp / MODEL_FILE))
     state = {}
-    for name in ('critic', 'critic_target', 'phi_target', 'psi_target', 'T', 'R'):
-        state.update(_prefixed(name, getattr(agent, name).state_dict()))
+    for name, module in agent.training_modules().items():
+        state.update(_prefixed(name, module.state_dict()))
     state['log_alpha'] = agent.log_alpha.detach().clone().reshape(1)
-    for name in ('critic_opt', 'actor_opt', 'alpha_opt', 'model_opt', 'decoder_opt'):
-        state.update(_optimizer_tensors(name, getattr(agent, name)))
+    for name, opt in agent.optimizers().items():
+        state.update(_optimizer_tensors(name, opt))
     state['counters'] = torch.tensor([int(counters.get(k, 0)) for k in
                                       ('timestep', 'env_steps', 'update_step', 'episodes')],
                                      dtype=torch.int64)
@@ -269,23 +273,36 @@ def load_state_into(modules: dict, tensors: dict, source: str) -> None:
         module.load_state_dict(sub, strict=True)
 
 
+def _refuse_non_finite(tensors: dict, source: str) -> None:
+    """NaN or infinite weights make a policy that cannot act: refuse them by name."""
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise CheckpointError(f'{source}: non-finite values in {bad[:4]}')
+
+
 def load_model(path, expected_family: str | None = None, obs_dim: int | None = None,
                action_dim: int | None = None):
-    """Load (metadata, inference modules dict) after every check."""
-    from zeus_ros.core.zeus import build_inference_modules
+    """Load (metadata, method, inference modules dict) after every check."""
+    from zeus_ros.core.agent import build_method, build_policy_modules
+    from zeus_ros.core.methods import ParamScale
     path = resolve_dir(path)
     meta = load_metadata(path, expected_family, obs_dim, action_dim)
     cfg = ZeusConfig.from_dict(meta['config'])
-    modules = build_inference_modules(cfg, meta['obs_layout']['obs_dim'],
-                                      meta['action_layout']['action_dim'])
+    obs, act = meta['obs_layout']['obs_dim'], meta['action_layout']['action_dim']
+    norm = meta['param_normalisation']
+    method = build_method(cfg, obs, act, ParamScale(norm['offset'], norm['scale']),
+                          training=False)
+    modules = {**build_policy_modules(cfg, obs, method.context_dim, act),
+               **method.inference_modules()}
     tensors = _verified_tensors(path, meta, MODEL_FILE)
     unknown = [k for k in tensors if k.split('.', 1)[0] not in modules]
     if unknown:
         raise CheckpointError(f'{MODEL_FILE} has unexpected tensors {unknown[:4]}')
+    _refuse_non_finite(tensors, MODEL_FILE)
     load_state_into(modules, tensors, MODEL_FILE)
     for m in modules.values():
         m.eval()
-    return meta, modules
+    return meta, method, modules
 
 
 def load_training_checkpoint(path, agent, replay=None) -> dict:
@@ -299,17 +316,14 @@ def load_training_checkpoint(path, agent, replay=None) -> dict:
     if diff:
         raise CheckpointError(f'config differs from the checkpoint (stored, now): {diff}')
     model = _verified_tensors(path, meta, MODEL_FILE)
-    load_state_into({n: getattr(agent, n) for n in ('phi', 'psi', 'actor', 'decoder')},
-                    model, MODEL_FILE)
+    load_state_into(agent.inference_modules(), model, MODEL_FILE)
     state = _verified_tensors(path, meta, STATE_FILE)
-    load_state_into({n: getattr(agent, n) for n in
-                     ('critic', 'critic_target', 'phi_target', 'psi_target', 'T', 'R')},
-                    state, STATE_FILE)
+    load_state_into(agent.training_modules(), state, STATE_FILE)
     with torch.no_grad():
         agent.log_alpha.copy_(state['log_alpha'].reshape(()))
-    for name in ('critic_opt', 'actor_opt', 'alpha_opt', 'model_opt', 'decoder_opt'):
+    for name, opt in agent.optimizers().items():
         try:
-            _load_optimizer(name, getattr(agent, name), state)
+            _load_optimizer(name, opt, state)
         except (ValueError, RuntimeError) as error:
             raise CheckpointError(f'optimizer {name} state does not fit: {error}') from None
     timestep, env_steps, update_step, episodes = (int(v) for v in state['counters'])

@@ -8,7 +8,8 @@
     obs = env.reset(seed)                       # window cleared
     each step:
         rows, mask = window.arrays()
-        latent = model.context(rows, mask)      # float32 (what the context node publishes)
+        latent = model.context(rows, mask)      # float32 (what the context node publishes;
+                                                # privileged methods also get the true value)
         action = model.act(obs, latent)         # float64 in [-1, 1]
         result = env.step(action)
         window.push(obs, action, result.reward, result.observation)
@@ -68,7 +69,7 @@ def run_episode(model: InferenceModel, family: str, value: float, seed: int,
         if step in swaps:
             env.set_param(swaps[step])
         rows, mask = window.arrays()
-        latent = model.context(rows, mask)
+        latent = model.context(rows, mask, env.param_value)
         action = model.act(obs, latent)
         result = env.step(action)
         rec['obs'].append(obs)

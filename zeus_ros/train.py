@@ -39,10 +39,11 @@ from sim_node.families import FAMILIES, SPLITS
 from zeus_ros.checkpoint import (CheckpointError, load_training_checkpoint,
                                  numpy_generator_state, restore_numpy_generator,
                                  save_checkpoint)
+from zeus_ros.core.agent import Agent, param_normaliser
 from zeus_ros.core.config import PROFILES, ZeusConfig, make_config
+from zeus_ros.core.methods import METHODS
 from zeus_ros.core.replay import ReplayBuffer
 from zeus_ros.core.window import ContextWindow
-from zeus_ros.core.zeus import param_normaliser, ZeusAgent
 
 TRAIN_COLUMNS = ('timestep', 'env_steps', 'wall_s', 'env_steps_per_s', 'critic_loss', 'q1',
                  'actor_loss', 'alpha_loss', 'alpha', 'entropy', 'dynamics_loss',
@@ -57,13 +58,12 @@ def env_info(env: ParamEnv) -> dict:
             'control_timestep': env.control_timestep}
 
 
-def make_agent(cfg: ZeusConfig, env: ParamEnv) -> ZeusAgent:
-    """Agent sized for the env, with the decoder normalised on the train values."""
-    offset, scale = param_normaliser(env.spec.train)
-    return ZeusAgent(cfg, env.obs_dim, env.action_dim, offset, scale)
+def make_agent(cfg: ZeusConfig, env: ParamEnv) -> Agent:
+    """Agent sized for the env, with the parameter normalised on the train values."""
+    return Agent(cfg, env.obs_dim, env.action_dim, param_normaliser(env.spec.train))
 
 
-def evaluate_agent(agent: ZeusAgent, family: str, values, episodes: int = 1, seed: int = 0,
+def evaluate_agent(agent: Agent, family: str, values, episodes: int = 1, seed: int = 0,
                    max_steps: int | None = None) -> dict[float, float]:
     """Mean deterministic return per value; all (value, episode) pairs step in one batch."""
     cfg = agent.config
@@ -84,7 +84,8 @@ def evaluate_agent(agent: ZeusAgent, family: str, values, episodes: int = 1, see
             break
         ctx = [windows[i].arrays() for i in idx]
         actions = agent.act(np.stack([obs[i] for i in idx]), np.stack([c[0] for c in ctx]),
-                            np.stack([c[1] for c in ctx]), deterministic=True)
+                            np.stack([c[1] for c in ctx]), [jobs[i][0] for i in idx],
+                            deterministic=True)
         for j, i in enumerate(idx):
             res = envs[i].step(actions[j])
             returns[i] += res.reward
@@ -117,16 +118,27 @@ class CsvLog:
         self.file.close()
 
 
+def _parse_bool(text: str) -> bool:
+    if text.lower() in ('1', 'true', 'yes', 'on'):
+        return True
+    if text.lower() in ('0', 'false', 'no', 'off'):
+        return False
+    raise ValueError(f'{text!r} is not a boolean (true/false)')
+
+
 def parse_overrides(items) -> dict:
-    """`key=value` strings -> typed config overrides."""
-    types = {f.name: f.type for f in fields(ZeusConfig)}
+    """`key=value` strings -> config overrides typed by the fields' defaults."""
+    kinds = {f.name: type(f.default) for f in fields(ZeusConfig)}
     out = {}
     for item in items or ():
         key, _, value = item.partition('=')
-        if key not in types:
+        if key not in kinds:
             raise SystemExit(f'unknown config field {key!r} in --set')
-        kind = {'int': int, 'float': float, 'str': str}[str(types[key])]
-        out[key] = kind(value)
+        parse = _parse_bool if kinds[key] is bool else kinds[key]
+        try:
+            out[key] = parse(value)
+        except ValueError as error:
+            raise SystemExit(f'--set {key}: {error}') from None
     return out
 
 
@@ -138,6 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=1)
     p.add_argument('--out', type=Path, required=True, help='run directory')
     p.add_argument('--profile', default='cpu', choices=PROFILES)
+    p.add_argument('--method', default='zeus', choices=sorted(METHODS),
+                   help='context method (zeus_ros.core.methods)')
     p.add_argument('--alpha-psi', type=float, default=None,
                    help='context-loss weight (default: Table 11); 0 = no-context-loss')
     p.add_argument('--set', nargs='*', default=[], metavar='KEY=VALUE',
@@ -166,7 +180,7 @@ class Trainer:
         overrides = parse_overrides(args.set)
         if args.alpha_psi is not None:
             overrides['alpha_psi'] = args.alpha_psi
-        self.cfg = cfg = make_config(args.family, args.profile, **overrides)
+        self.cfg = cfg = make_config(args.family, args.profile, args.method, **overrides)
         torch.set_num_threads(cfg.num_threads)
         torch.manual_seed(args.seed)
         self.rng = np.random.default_rng(args.seed)
@@ -218,7 +232,7 @@ class Trainer:
             actions = self.rng.uniform(-1.0, 1.0, (len(self.envs), self.envs[0].action_dim))
         else:
             actions = self.agent.act(np.stack(self.obs), np.stack([c[0] for c in ctx]),
-                                     np.stack([c[1] for c in ctx]))
+                                     np.stack([c[1] for c in ctx]), self.values)
         for i, env in enumerate(self.envs):
             res = env.step(actions[i])
             self.env_steps += 1
@@ -229,10 +243,11 @@ class Trainer:
                 self.ep_returns[i] = 0.0
                 continue
             w = self.windows[i]
+            continues = w.fill > 0
             w.push(self.obs[i], actions[i], res.reward, res.observation)
             # Time-limit truncation is not a terminal: bootstrap through it.
             self.replay.add(self.obs[i], actions[i], res.reward, res.observation,
-                            res.terminal, ctx[i], w.arrays(), i, self.values[i])
+                            res.terminal, i, self.values[i], continues)
             self.ep_returns[i] += res.reward
             self.obs[i] = res.observation
             if res.terminal or res.truncated:
@@ -291,7 +306,7 @@ class Trainer:
                 if self.timestep > cfg.init_steps:
                     m = self.agent.update(self.replay.sample(cfg.batch_size), self.timestep)
                     for k, v in m.items():
-                        sums[k] = sums.get(k, 0.0) + v
+                        sums[k] = sums.get(k, 0.0) + float(v)
                         counts[k] = counts.get(k, 0) + 1
                 bar.update(1)
                 if self.timestep % args.log_every == 0:

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import json
 
 from sim_node.families import get_family
+from zeus_ros.core.methods import METHODS
 
 PROFILES = ('cpu', 'paper')
 AGGREGATIONS = ('mean', 'sum', 'max')
@@ -35,6 +36,8 @@ class ZeusConfig:
     """All hyperparameters of one ZeUS training run."""
 
     family: str = _f('walker-walk-v0', 'Environment family (sim_node.families).')
+    method: str = _f('zeus', 'Context method (zeus_ros.core.methods): zeus, '
+                     'zeus-no-context-loss, zeus-id, sac, oracle.')
     profile: str = _f('cpu', "Preset the values came from: 'cpu' or 'paper'.")
     # -- context -------------------------------------------------------
     context_length: int = _f(5, 'k: transitions in the context window (Tables 8-9).')
@@ -42,6 +45,13 @@ class ZeusConfig:
     context_dim: int = _f(50, 'Size of the latent context psi(H).')
     context_hidden: int = _f(256, 'Hidden width of the per-transition MLP of psi.')
     context_layers: int = _f(2, 'Hidden layers of the per-transition MLP of psi.')
+    context_input: str = _f(
+        'transition', "What psi reads per row (zeus-id): 'transition' = concat(s, a, r, s'), "
+        "'delta' = concat(s, a, r, s' - s); both standardised by running statistics.")
+    context_critic_grad: bool = _f(
+        True, 'zeus-id: let the critic TD loss train psi (zeus always does).')
+    metric_normalise: bool = _f(
+        False, 'zeus-id: divide the task metric and latent distances by their batch means.')
     # -- observation encoder -------------------------------------------
     feature_dim: int = _f(50, 'Size of the latent state phi(s).')
     encoder_hidden: int = _f(256, 'Hidden width of the observation encoder phi.')
@@ -91,6 +101,10 @@ class ZeusConfig:
     def validate(self) -> 'ZeusConfig':
         """Raise ValueError on an inconsistent configuration; return self."""
         get_family(self.family)
+        if self.method not in METHODS:
+            raise ValueError(f'method must be one of {sorted(METHODS)}, got {self.method!r}')
+        if self.context_input not in ('transition', 'delta'):
+            raise ValueError("context_input must be 'transition' or 'delta'")
         if self.profile not in PROFILES:
             raise ValueError(f'profile must be one of {PROFILES}, got {self.profile!r}')
         if self.aggregation not in AGGREGATIONS:
@@ -121,8 +135,9 @@ class ZeusConfig:
         return replace(self, **changes).validate()
 
 
-def make_config(family: str, profile: str = 'cpu', **overrides) -> ZeusConfig:
-    """Preset for a family and profile, with optional field overrides."""
+def make_config(family: str, profile: str = 'cpu', method: str = 'zeus',
+                **overrides) -> ZeusConfig:
+    """Preset for a family, profile and method, with optional field overrides."""
     spec = get_family(family)
     reward_family = family in _REWARD_FAMILIES
     base = dict(
@@ -139,6 +154,8 @@ def make_config(family: str, profile: str = 'cpu', **overrides) -> ZeusConfig:
                     encoder_hidden=256, context_hidden=128, num_threads=2)
     else:
         raise ValueError(f'profile must be one of {PROFILES}, got {profile!r}')
+    base['method'] = method
+    base.update(METHODS[method].config_defaults if method in METHODS else {})
     base.update(overrides)
     return ZeusConfig(**base).validate()
 

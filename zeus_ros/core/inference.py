@@ -2,6 +2,7 @@
 
     model = InferenceModel.load(path)           # checks the checkpoint (CheckpointError)
     latent = model.context(rows, mask)          # np.float32 [context_dim]
+    latent = model.context(rows, mask, true_param=v)   # privileged methods (oracle)
     action = model.act(obs, latent)             # np.float64 [action_dim], tanh(mean)
     # the same action in two parts, phi(s) computed before the latent is in:
     action = model.act_on_features(model.features(obs), latent)
@@ -34,18 +35,19 @@ def _single_thread() -> None:
 class InferenceModel:
     """phi, psi, actor and decoder of a checkpoint, with numpy in and out."""
 
-    def __init__(self, metadata: dict, modules: dict):
+    def __init__(self, metadata: dict, method, modules: dict):
         self.metadata = metadata
+        self.method = method
         self.phi = modules['phi']
-        self.psi = modules['psi']
         self.actor = modules['actor']
-        self.decoder = modules.get('decoder')
         self.family = metadata['family']
+        self.method_name = metadata['config'].get('method', 'zeus')
+        self.needs_true_param = method.needs_true_param
         self.obs_dim = int(metadata['obs_layout']['obs_dim'])
         self.action_dim = int(metadata['action_layout']['action_dim'])
         self.k = int(metadata['context']['k'])
         self.row_dim = int(metadata['context']['row_dim'])
-        self.context_dim = int(metadata['context']['context_dim'])
+        self.context_dim = method.context_dim
         norm = metadata['param_normalisation']
         self.param_offset = float(norm['offset'])
         self.param_scale = float(norm['scale'])
@@ -55,19 +57,25 @@ class InferenceModel:
              action_dim: int | None = None) -> 'InferenceModel':
         """Load a checkpoint directory (or a run directory holding `checkpoint/`)."""
         torch.set_num_threads(1)
-        meta, modules = load_model(path, expected_family, obs_dim, action_dim)
-        return cls(meta, modules)
+        meta, method, modules = load_model(path, expected_family, obs_dim, action_dim)
+        return cls(meta, method, modules)
 
     @torch.no_grad()
-    def context(self, rows: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """Latent context psi(H) of one window (rows [k, row_dim], mask [k]) as float32."""
+    def context(self, rows: np.ndarray, mask: np.ndarray,
+                true_param: float | None = None) -> np.ndarray:
+        """Latent context of one window (rows [k, row_dim], mask [k]) as float32.
+
+        `true_param` is read only by privileged methods (`needs_true_param`).
+        """
         _single_thread()
         rows = np.asarray(rows, dtype=np.float32)
         mask = np.asarray(mask, dtype=bool)
         if rows.shape != (self.k, self.row_dim) or mask.shape != (self.k,):
             raise ValueError(f'window must be rows {(self.k, self.row_dim)} and mask '
                              f'({self.k},), got {rows.shape} and {mask.shape}')
-        latent = self.psi(torch.from_numpy(rows)[None], torch.from_numpy(mask)[None])[0]
+        param = None if true_param is None else torch.tensor([float(true_param)])
+        latent = self.method.encode(torch.from_numpy(rows)[None], torch.from_numpy(mask)[None],
+                                    param)[0]
         return latent.numpy().astype(np.float32)
 
     def act(self, obs: np.ndarray, latent: np.ndarray) -> np.ndarray:
@@ -100,9 +108,9 @@ class InferenceModel:
     @torch.no_grad()
     def decode(self, latent: np.ndarray) -> float:
         """Physical-parameter estimate read from a latent (NaN without a decoder)."""
-        if self.decoder is None:
-            return math.nan
         _single_thread()
         latent = np.asarray(latent, dtype=np.float32).reshape(1, -1)
-        value = float(self.decoder(torch.from_numpy(latent))[0])
-        return value * self.param_scale + self.param_offset
+        normalised = self.method.decode(torch.from_numpy(latent))
+        if normalised is None:
+            return math.nan
+        return float(normalised[0]) * self.param_scale + self.param_offset

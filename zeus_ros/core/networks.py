@@ -74,7 +74,14 @@ class ContextEncoder(nn.Module):
         self.context_dim = context_dim
 
     def forward(self, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        codes = run_mlp(self.net, rows)  # [B, k, C]
+        return self.pool(self.codes(rows), mask)
+
+    def codes(self, rows: torch.Tensor) -> torch.Tensor:
+        """Per-transition codes [..., context_dim] before aggregation."""
+        return run_mlp(self.net, rows)
+
+    def pool(self, codes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Aggregate codes [B, k, C] over the valid rows of `mask` [B, k]."""
         m = mask.to(codes.dtype).unsqueeze(-1)  # [B, k, 1]
         count = m.sum(dim=1)  # [B, 1]
         if self.aggregation == 'max':

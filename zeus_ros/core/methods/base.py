@@ -1,0 +1,113 @@
+"""The plug-in interface: how a method obtains and trains the context the policy sees.
+
+The SAC core (`zeus_ros.core.agent.Agent`) owns phi, the actor, the twin
+critic and their targets. Everything about the context belongs to a
+`ContextMethod`: its networks (split into those a deployed policy needs and
+those only training needs), its optimisers, how a latent is computed from a
+window (or from the true parameter, for privileged references), whether the
+critic's TD error may shape it, its own losses, and how a physical-parameter
+estimate is read from a latent. A new method is a module in this package that
+subclasses `ContextMethod` and registers itself in `METHODS`; the trainer,
+the checkpoint code and the nodes need no change.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, TYPE_CHECKING
+
+import torch
+from torch import nn
+
+if TYPE_CHECKING:  # config imports the registry; the methods only read a config
+    from zeus_ros.core.config import ZeusConfig
+
+
+@dataclass(frozen=True)
+class Dims:
+    """Sizes a method builds its networks for."""
+
+    obs_dim: int
+    action_dim: int
+    row_dim: int
+
+
+@dataclass(frozen=True)
+class ParamScale:
+    """Min-max normalisation of the physical parameter over the train values."""
+
+    offset: float = 0.0
+    scale: float = 1.0
+
+    def normalise(self, value):
+        """Physical value -> normalised (train values span [0, 1])."""
+        return (value - self.offset) / self.scale
+
+    def physical(self, normalised):
+        """Normalised -> physical value."""
+        return normalised * self.scale + self.offset
+
+
+def soft_update(net: nn.Module, target: nn.Module, tau: float) -> None:
+    """Polyak average: target <- tau * net + (1 - tau) * target."""
+    with torch.no_grad():
+        for p, tp in zip(net.parameters(), target.parameters(), strict=True):
+            tp.lerp_(p, tau)
+
+
+class ContextMethod:
+    """Base of every context method: no context, nothing to train."""
+
+    name: ClassVar[str] = ''
+    # The context is the TRUE parameter (privileged reference): callers must pass it.
+    needs_true_param: ClassVar[bool] = False
+    # The critic's TD loss back-propagates into the context encoder.
+    critic_trains_context: ClassVar[bool] = False
+    # Config fields this method presets (a user's --set still wins).
+    config_defaults: ClassVar[dict] = {}
+
+    def __init__(self, cfg: 'ZeusConfig', dims: Dims, param: ParamScale, training: bool = True):
+        self.cfg, self.dims, self.param = cfg, dims, param
+        self.training = training
+
+    @property
+    def context_dim(self) -> int:
+        """Width of the latent the actor and critic see beside phi(s)."""
+        return 0
+
+    def inference_modules(self) -> dict[str, nn.Module]:
+        """Networks a deployed policy needs (saved in model.safetensors)."""
+        return {}
+
+    def training_modules(self) -> dict[str, nn.Module]:
+        """Networks only training needs (saved in training_state.safetensors)."""
+        return {}
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """The method's own optimisers, by name."""
+        return {}
+
+    def encoder_parameters(self) -> list[nn.Parameter]:
+        """Parameters the critic's optimiser trains when `critic_trains_context`."""
+        return []
+
+    def encode(self, rows: torch.Tensor, mask: torch.Tensor,
+               param: torch.Tensor | None) -> torch.Tensor:
+        """Latent context [B, context_dim] of windows rows [B, k, D], mask [B, k]."""
+        return rows.new_zeros((rows.shape[0], 0))
+
+    def encode_target(self, rows, mask, param) -> torch.Tensor:
+        """The latent the TD target uses (a slow copy where the critic trains the encoder)."""
+        with torch.no_grad():
+            return self.encode(rows, mask, param)
+
+    def update_targets(self, tau: float) -> None:
+        """Move the method's target networks (if any) towards the online ones."""
+
+    def update(self, batch, z: torch.Tensor, step: int) -> dict[str, torch.Tensor]:
+        """The method's own losses and optimiser steps; `z` = phi(s), detached."""
+        return {}
+
+    def decode(self, latent: torch.Tensor) -> torch.Tensor | None:
+        """Normalised parameter estimate [B] from latents, or None without a decoder."""
+        return None

@@ -1,0 +1,33 @@
+"""`oracle`: the TRUE parameter, min-max normalised over the train values, is the context.
+
+The upper bound of what knowing the physics is worth: with `sac` it says
+whether a family needs adaptation at all (the oracle-vs-sac gap). It is
+privileged: callers pass the true parameter (the replay buffer, the
+evaluator, and on ROS the parameter the sim publishes in StepInfo).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from zeus_ros.core.methods.base import ContextMethod
+
+
+class OracleMethod(ContextMethod):
+    """Latent = [normalised true parameter]; the decoded estimate is exact by construction."""
+
+    name = 'oracle'
+    needs_true_param = True
+
+    @property
+    def context_dim(self) -> int:
+        return 1
+
+    def encode(self, rows, mask, param):
+        if param is None:
+            raise ValueError('the oracle method needs the true parameter')
+        param = torch.as_tensor(param, dtype=torch.float32).reshape(-1, 1)
+        return self.param.normalise(param)
+
+    def decode(self, latent):
+        return latent[..., 0]

@@ -1,0 +1,161 @@
+"""`zeus`: the paper's method (Equation 2, Algorithm 2), kept as published for reproduction.
+
+* psi: per-transition MLP over concat(s, a, r, s'), aggregated (mean / sum /
+  max); trained by the critic's TD loss (SAC-AE convention) AND by the
+  model update below. A Polyak copy `psi_target` feeds the TD target.
+* model update -> psi, T and R only:
+  alpha_psi * MSE(||psi(H1) - psi(H2)||_2, d(c1, c2)) + dynamics + reward,
+  T: (phi(s), a, psi) -> Gaussian over phi(s') (stop-gradient target),
+  R: (phi(s), a, psi) -> r; phi(s) detached (phi is trained by the critic).
+  d(c1, c2) = |R(z, a, c1) - R(z, a, c2)| + W2(T(z, a, c1), T(z, a, c2)) at
+  the SAME (z, a) under the two contexts, under no_grad. H2 is the batch
+  permuted, so Equation 2's "same for H2" terms are the same batch average.
+* decoder -> reads the normalised parameter from the DETACHED latent (a
+  probe and the deployed estimate; it never shapes psi).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn.functional as F
+
+from zeus_ros.core.methods.base import ContextMethod, soft_update
+from zeus_ros.core.networks import (ContextEncoder, GaussianModel, ParamDecoder, RewardModel,
+                                    weight_init)
+
+
+def w2_diag_gaussians(mu1, log_std1, mu2, log_std2) -> torch.Tensor:
+    """2-Wasserstein distance between diagonal Gaussians (closed form), per row."""
+    sq = (mu1 - mu2).pow(2).sum(-1) + (log_std1.exp() - log_std2.exp()).pow(2).sum(-1)
+    return sq.sqrt()
+
+
+def safe_norm(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """L2 norm over the last axis with a finite gradient at 0."""
+    return (x.pow(2).sum(-1) + eps).sqrt()
+
+
+def gaussian_nll(mu, log_std, target) -> torch.Tensor:
+    """Mean over the batch of the diagonal-Gaussian negative log-likelihood (no constant)."""
+    diff = (target - mu) / log_std.exp()
+    return (0.5 * diff.pow(2) + log_std).sum(-1).mean()
+
+
+class ZeusMethod(ContextMethod):
+    """Equation 2 on phi-space models; the critic also trains psi."""
+
+    name = 'zeus'
+    critic_trains_context = True
+
+    def __init__(self, cfg, dims, param, training=True):
+        super().__init__(cfg, dims, param, training)
+        self.psi = ContextEncoder(dims.row_dim, cfg.context_dim, cfg.context_hidden,
+                                  cfg.context_layers, cfg.aggregation)
+        self.decoder = ParamDecoder(cfg.context_dim, cfg.decoder_hidden)
+        if not training:
+            return
+        self.T = GaussianModel(cfg.feature_dim, dims.action_dim, cfg.context_dim,
+                               cfg.dynamics_hidden, cfg.dynamics_layers)
+        self.R = RewardModel(cfg.feature_dim, dims.action_dim, cfg.context_dim,
+                             cfg.dynamics_hidden, cfg.dynamics_layers)
+        for m in (self.psi, self.T, self.R, self.decoder):
+            m.apply(weight_init)
+        self.psi_target = copy.deepcopy(self.psi).requires_grad_(False)
+        self.model_opt = torch.optim.Adam(
+            [*self.psi.parameters(), *self.T.parameters(), *self.R.parameters()],
+            lr=cfg.model_lr)
+        self.decoder_opt = torch.optim.Adam(self.decoder.parameters(), lr=cfg.decoder_lr)
+        self.phi = None  # set by the agent: the model update needs phi(s') targets
+
+    @property
+    def context_dim(self) -> int:
+        return self.cfg.context_dim
+
+    def inference_modules(self):
+        return {'psi': self.psi, 'decoder': self.decoder}
+
+    def training_modules(self):
+        return {'psi_target': self.psi_target, 'T': self.T, 'R': self.R}
+
+    def optimizers(self):
+        return {'model_opt': self.model_opt, 'decoder_opt': self.decoder_opt}
+
+    def encoder_parameters(self):
+        return list(self.psi.parameters())
+
+    def encode(self, rows, mask, param):
+        return self.psi(rows, mask)
+
+    def encode_target(self, rows, mask, param):
+        with torch.no_grad():
+            return self.psi_target(rows, mask)
+
+    def update_targets(self, tau):
+        soft_update(self.psi, self.psi_target, tau)
+
+    def decode(self, latent):
+        return self.decoder(latent)
+
+    # -- Equation 2 ------------------------------------------------------------
+    def context_target(self, z, a, c1, c2) -> torch.Tensor:
+        """d(c1, c2) from the learned R and T at the same (z, a); no gradient."""
+        with torch.no_grad():
+            r1, r2 = self.R(z, a, c1), self.R(z, a, c2)
+            mu1, ls1 = self.T(z, a, c1)
+            mu2, ls2 = self.T(z, a, c2)
+            return (r1 - r2).abs() + w2_diag_gaussians(mu1, ls1, mu2, ls2)
+
+    def context_loss(self, z, a, c, perm) -> torch.Tensor:
+        """MSE(||c - c[perm]||, d): only psi (through `c`) receives gradients."""
+        c2 = c[perm]
+        target = self.context_target(z, a, c.detach(), c2.detach())
+        return F.mse_loss(safe_norm(c - c2), target)
+
+    def model_loss(self, b, z, perm=None):
+        """Equation 2: alpha_psi * context loss + dynamics + reward; trains psi, T, R."""
+        with torch.no_grad():
+            zn = self.phi(b.next_obs)      # stop-gradient dynamics target
+        c = self.psi(b.ctx_rows, b.ctx_mask)
+        mu, log_std = self.T(z, b.action, c)
+        dyn = gaussian_nll(mu, log_std, zn) if self.cfg.dynamics_loss == 'nll' \
+            else F.mse_loss(mu, zn)
+        rew = F.mse_loss(self.R(z, b.action, c), b.reward)
+        metrics = {'dynamics_loss': dyn.detach(), 'reward_loss': rew.detach()}
+        loss = dyn + rew
+        if self.cfg.alpha_psi > 0:
+            if perm is None:
+                perm = torch.randperm(c.shape[0])
+            ctx = self.context_loss(z, b.action, c, perm)
+            loss = loss + self.cfg.alpha_psi * ctx
+            metrics['context_loss'] = ctx.detach()
+        return loss, c, metrics
+
+    def decoder_loss(self, c, param) -> torch.Tensor:
+        """MSE of the decoder on the DETACHED latent against the normalised parameter."""
+        return F.mse_loss(self.decoder(c.detach()), self.param.normalise(param))
+
+    def update(self, batch, z, step):
+        loss, c, metrics = self.model_loss(batch, z)
+        self.model_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.model_opt.step()
+        dec = self.decoder_loss(c, batch.param)
+        self.decoder_opt.zero_grad(set_to_none=True)
+        dec.backward()
+        self.decoder_opt.step()
+        metrics['decoder_loss'] = dec.detach()
+        return metrics
+
+
+class ZeusNoContextLoss(ZeusMethod):
+    """`zeus-no-context-loss`: the paper's ablation (alpha_psi = 0 whatever the config says)."""
+
+    name = 'zeus-no-context-loss'
+    config_defaults = {'alpha_psi': 0.0}
+
+    def model_loss(self, b, z, perm=None):
+        if self.cfg.alpha_psi != 0:
+            raise ValueError('zeus-no-context-loss trains with alpha_psi = 0')
+        return super().model_loss(b, z, perm)

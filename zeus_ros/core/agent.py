@@ -50,14 +50,14 @@ def param_normaliser(train_values) -> ParamScale:
 
 def build_method(cfg: ZeusConfig, obs_dim: int, action_dim: int, param: ParamScale,
                  training: bool = True) -> ContextMethod:
-    """The configured context method, sized for the environment."""
+    """Build the configured context method, sized for the environment."""
     dims = Dims(obs_dim, action_dim, row_dim(obs_dim, action_dim))
     return get_method(cfg.method)(cfg, dims, param, training)
 
 
 def build_policy_modules(cfg: ZeusConfig, obs_dim: int, context_dim: int,
                          action_dim: int) -> dict:
-    """phi and the actor (the SAC half of what a deployed policy needs)."""
+    """Build phi and the actor (the SAC half of what a deployed policy needs)."""
     return {
         'phi': ObsEncoder(obs_dim, cfg.feature_dim, cfg.encoder_hidden, cfg.encoder_layers),
         'actor': Actor(cfg.feature_dim + context_dim, action_dim, cfg.hidden_dim,
@@ -69,12 +69,12 @@ class Agent:
     """SAC on concat(phi(s), latent) with a pluggable context method."""
 
     def __init__(self, config: ZeusConfig, obs_dim: int, action_dim: int,
-                 param: ParamScale = ParamScale()):
+                 param: ParamScale | None = None):
         self.config = cfg = config
         self.obs_dim, self.action_dim = obs_dim, action_dim
         self.row_dim = row_dim(obs_dim, action_dim)
-        self.param = param
-        self.method = build_method(cfg, obs_dim, action_dim, param)
+        self.param = param or ParamScale()
+        self.method = build_method(cfg, obs_dim, action_dim, self.param)
         nets = build_policy_modules(cfg, obs_dim, self.method.context_dim, action_dim)
         self.phi, self.actor = nets['phi'], nets['actor']
         self.critic = Critic(cfg.feature_dim + self.method.context_dim, action_dim,

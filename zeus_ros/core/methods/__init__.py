@@ -17,7 +17,7 @@ METHODS: dict[str, type[ContextMethod]] = {
 
 
 def get_method(name: str) -> type[ContextMethod]:
-    """The method class registered under `name` (ValueError naming the known ones)."""
+    """Return the method class registered under `name` (ValueError names the known)."""
     try:
         return METHODS[name]
     except KeyError:

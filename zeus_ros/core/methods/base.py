@@ -84,7 +84,7 @@ class ContextMethod:
         return {}
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        """The method's own optimisers, by name."""
+        """Return the method's own optimisers, by name."""
         return {}
 
     def encoder_parameters(self) -> list[nn.Parameter]:
@@ -97,7 +97,7 @@ class ContextMethod:
         return rows.new_zeros((rows.shape[0], 0))
 
     def encode_target(self, rows, mask, param) -> torch.Tensor:
-        """The latent the TD target uses (a slow copy where the critic trains the encoder)."""
+        """Latent for the TD target (a slow copy where the critic trains the encoder)."""
         with torch.no_grad():
             return self.encode(rows, mask, param)
 
@@ -105,7 +105,7 @@ class ContextMethod:
         """Move the method's target networks (if any) towards the online ones."""
 
     def update(self, batch, z: torch.Tensor, step: int) -> dict[str, torch.Tensor]:
-        """The method's own losses and optimiser steps; `z` = phi(s), detached."""
+        """Run the method's own losses and optimiser steps; `z` = phi(s), detached."""
         return {}
 
     def decode(self, latent: torch.Tensor) -> torch.Tensor | None:

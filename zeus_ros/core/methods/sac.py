@@ -1,5 +1,8 @@
-"""`sac`: no context at all. Trained on every training task at once, this is
-domain randomisation: the reference an adaptive method must beat."""
+"""`sac`: no context at all.
+
+Trained on every training task at once, this is domain randomisation: the
+reference an adaptive method must beat.
+"""
 
 from __future__ import annotations
 

@@ -31,6 +31,7 @@ setup(
             'demo = zeus_ros.demo:main',
             'train = zeus_ros.train:main',
             'eval = zeus_ros.evaluate:main',
+            'adaptation_report = zeus_ros.adaptation:main',
         ],
     },
 )

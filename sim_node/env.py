@@ -273,17 +273,22 @@ class ParamEnv:
         """Put a new parameter value into force, keeping the simulator state."""
         value = float(value)
         self._require_valid(value)
-        old = self._physics.data
         physics = build_physics(self.spec, value)
-        new = physics.data
-        # Same joints, actuators and activations: only sizes/friction/masses change.
-        for field in ('qpos', 'qvel', 'act', 'ctrl', 'qacc_warmstart'):
-            getattr(new, field)[:] = getattr(old, field)
-        new.time = old.time
-        physics.forward()
+        _copy_state(self._physics.data, physics)
         self._physics = physics
         self._task = _make_task(self.spec, value, self._random)
         self._value = value
+
+    def copy_state_from(self, other: 'ParamEnv') -> None:
+        """Take another env's simulator state and step count (same family, any value).
+
+        Gives "the same state and action under other physics": the
+        counterfactual transitions of the adaptation report.
+        """
+        if other.family != self.family:
+            raise ValueError(f'cannot copy a {other.family} state into {self.family}')
+        _copy_state(other.physics.data, self._physics)
+        self.step_count = other.step_count
 
     def _require_valid(self, value: float) -> None:
         reason = self.spec.check_value(value)
@@ -294,3 +299,13 @@ class ParamEnv:
         self.step_count = 0
         with self._physics.reset_context():
             self._task.initialize_episode(self._physics)
+
+
+def _copy_state(source, physics) -> None:
+    """Copy the dynamic state of MjData `source` into `physics` and recompute derived terms."""
+    # Same joints, actuators and activations: only sizes/friction/masses differ.
+    new = physics.data
+    for field in ('qpos', 'qvel', 'act', 'ctrl', 'qacc_warmstart'):
+        getattr(new, field)[:] = getattr(source, field)
+    new.time = source.time
+    physics.forward()

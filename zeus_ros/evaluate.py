@@ -49,49 +49,85 @@ class EpisodeRecord:
     instability: list = field(default_factory=list)
 
 
-def run_episode(model: InferenceModel, family: str, value: float, seed: int,
-                swap_schedule: dict | None = None, max_steps: int | None = None,
-                env: ParamEnv | None = None) -> EpisodeRecord:
-    """Run one deterministic episode in the ROS loop's order; return per-step records."""
+class EpisodeProbe:
+    """Hooks on what the context sees in `run_episode`; this base changes nothing.
+
+    Subclasses (zeus_ros.adaptation) zero or freeze the latent, or feed the
+    window transitions simulated under another parameter value, to measure
+    whether a policy acts on its context.
+    """
+
+    def true_param(self, env: ParamEnv) -> float:
+        """Return the true value a privileged method is given."""
+        return env.param_value
+
+    def latent(self, latent: np.ndarray) -> np.ndarray:
+        """Return the latent the policy acts on."""
+        return latent
+
+    def before_step(self, env: ParamEnv, action: np.ndarray) -> None:
+        """See the state and action just before the env steps."""
+
+    def window_transition(self, result) -> tuple[float, np.ndarray]:
+        """(r, s') pushed into the window for the step just taken."""
+        return result.reward, result.observation
+
+
+class _Recorder:
+    def __init__(self):
+        self.rows = {n: [] for n in ('obs', 'lat', 'act', 'rew', 'val', 'est')}
+        self.instability = []
+
+    def add(self, **values) -> None:
+        for name, value in values.items():
+            self.rows[name].append(value)
+
+    def record(self) -> EpisodeRecord:
+        r = self.rows
+        return EpisodeRecord(np.asarray(r['obs']), np.asarray(r['lat'], np.float32),
+                             np.asarray(r['act']), np.asarray(r['rew']), np.asarray(r['val']),
+                             np.asarray(r['est']), float(np.sum(r['rew'])), self.instability)
+
+
+def _episode_env(family, value, seed, max_steps, env) -> ParamEnv:
     if env is None:
         kwargs = {} if max_steps is None else {'episode_steps': max_steps}
-        env = ParamEnv(family, value, seed=seed, **kwargs)
-    elif env.param_value != value:
+        return ParamEnv(family, value, seed=seed, **kwargs)
+    if env.param_value != value:
         env.set_param(value)
+    return env
+
+
+def run_episode(model: InferenceModel, family: str, value: float, seed: int,
+                swap_schedule: dict | None = None, max_steps: int | None = None,
+                env: ParamEnv | None = None, probe: EpisodeProbe | None = None) -> EpisodeRecord:
+    """Run one deterministic episode in the ROS loop's order; return per-step records."""
+    env = _episode_env(family, value, seed, max_steps, env)
+    probe = probe or EpisodeProbe()
     window = ContextWindow(model.k, env.obs_dim, env.action_dim)
     obs = env.reset(seed=seed)
-    window.clear()
     swaps = dict(swap_schedule or {})
-    rec = {n: [] for n in ('obs', 'lat', 'act', 'rew', 'val', 'est')}
-    instability = []
+    rec = _Recorder()
     step = 0
     while True:
         if step in swaps:
             env.set_param(swaps[step])
         rows, mask = window.arrays()
-        latent = model.context(rows, mask, env.param_value)
+        latent = probe.latent(model.context(rows, mask, probe.true_param(env)))
         action = model.act(obs, latent)
+        probe.before_step(env, action)
         result = env.step(action)
-        rec['obs'].append(obs)
-        rec['lat'].append(latent)
-        rec['act'].append(action)
-        rec['rew'].append(result.reward)
-        rec['val'].append(env.param_value)
-        rec['est'].append(model.decode(latent))
+        rec.add(obs=obs, lat=latent, act=action, rew=result.reward, val=env.param_value,
+                est=model.decode(latent))
         step += 1
         if result.instability:
-            instability.append((step, result.instability))
-            window.clear()
+            rec.instability.append((step, result.instability))
             break
-        window.push(obs, action, result.reward, result.observation)
+        window.push(obs, action, *probe.window_transition(result))
         obs = result.observation
         if result.truncated or result.terminal:
-            window.clear()
             break
-    return EpisodeRecord(np.asarray(rec['obs']), np.asarray(rec['lat'], np.float32),
-                         np.asarray(rec['act']), np.asarray(rec['rew']),
-                         np.asarray(rec['val']), np.asarray(rec['est']),
-                         float(np.sum(rec['rew'])), instability)
+    return rec.record()
 
 
 def evaluate(model: InferenceModel, values, episodes: int, seed: int,

@@ -1,0 +1,95 @@
+"""Adaptation report: its measures on synthetic data and on small real checkpoints."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_node.env import ParamEnv
+from zeus_ros.adaptation import (build_report, OtherPhysicsWindow, r_squared, ReportConfig,
+                                 steps_to_cover, ZeroedContext)
+from zeus_ros.core.inference import InferenceModel
+from zeus_ros.evaluate import run_episode
+
+REPO = Path(__file__).resolve().parents[1]
+FAMILY = 'walker-walk-slippery'
+QUICK = ReportConfig(episodes=1, max_steps=40, swap_step=20, swap_steps=40)
+
+
+def train_tiny(tmp_path_factory, method):
+    out = tmp_path_factory.mktemp(method) / 'run'
+    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
+                    '--method', method, '--steps', '150', '--out', str(out), '--eval-every', '0',
+                    '--checkpoint-every', '150', '--quiet', '--set', 'init_steps=100',
+                    'hidden_dim=32', 'batch_size_per_task=4', 'replay_capacity=2000',
+                    'context_length=5'], check=True, cwd=REPO, capture_output=True)
+    return out / 'checkpoint'
+
+
+@pytest.fixture(scope='module')
+def oracle(tmp_path_factory):
+    return train_tiny(tmp_path_factory, 'oracle')
+
+
+@pytest.fixture(scope='module')
+def sac(tmp_path_factory):
+    return train_tiny(tmp_path_factory, 'sac')
+
+
+@pytest.fixture(scope='module')
+def zeus_id(tmp_path_factory):
+    return train_tiny(tmp_path_factory, 'zeus-id')
+
+
+def test_r_squared_and_swap_coverage_on_known_series():
+    assert r_squared([1, 2, 3], [1, 2, 3]) == 1.0
+    assert r_squared([1, 2, 3], [2, 2, 2]) == 0.0
+    est = np.concatenate([np.full(100, 1.0), np.linspace(1.0, 2.0, 11), np.full(50, 2.0)])
+    # from 1.0 to 2.0: 70 % covered once the ramp passes 1.7, i.e. 7 steps after the swap
+    assert steps_to_cover(est, 100, 1.0, 2.0) == 7
+    assert steps_to_cover(np.ones(200), 100, 1.0, 2.0) is None
+    # a decrease is covered when the estimate falls far enough
+    assert steps_to_cover(est[::-1].copy(), 50, 2.0, 1.0) == 7
+
+
+def test_oracle_report_identifies_exactly_and_reacts_at_once(oracle):
+    report = build_report(str(oracle), QUICK)
+    assert report.method == 'oracle' and report.context_dim == 1
+    assert report.identification.r2_per_step == pytest.approx(1.0)
+    assert all(s.steps_to_70pct == 0 for s in report.swaps)
+    assert {r.split for r in report.returns} == {'train', 'interpolation', 'extrapolation'}
+    assert report.context_use is not None
+
+
+def test_sac_report_has_no_context_sections(sac):
+    report = build_report(str(sac), QUICK)
+    assert report.context_dim == 0 and report.identification is None
+    assert report.swaps == [] and report.context_use is None
+
+
+def test_zeroed_probe_feeds_zero_latents(zeus_id):
+    model = InferenceModel.load(zeus_id)
+    rec = run_episode(model, FAMILY, 0.2, seed=0, max_steps=30, probe=ZeroedContext(model))
+    assert not rec.latents.any()
+    intact = run_episode(model, FAMILY, 0.2, seed=0, max_steps=30)
+    assert intact.latents[5:].any()
+
+
+def test_other_physics_window_is_the_same_step_under_the_other_value():
+    env = ParamEnv(FAMILY, 0.1, seed=3)
+    env.reset(seed=3)
+    probe = OtherPhysicsWindow(FAMILY, 0.6, max_steps=1000)
+    twin = ParamEnv(FAMILY, 0.6, seed=3)
+    action = np.full(env.action_dim, 0.5)
+    for _ in range(80):  # long enough for the feet to touch the floor
+        env.step(action)
+    twin.copy_state_from(env)
+    expected = twin.step(action)
+    probe.before_step(env, action)
+    real = env.step(action)
+    reward, obs = probe.window_transition(real)
+    np.testing.assert_array_equal(obs, expected.observation)
+    assert reward == expected.reward
+    assert not np.array_equal(obs, real.observation)  # the friction does change s'

@@ -16,7 +16,7 @@ from pathlib import Path
 import tempfile
 import time
 
-from zeus_ros.train import build_parser, Trainer
+from zeus_ros.train import build_parser, RunArgs, Trainer
 
 
 class _Timed:
@@ -43,7 +43,7 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
     args = build_parser().parse_args(['--family', family, '--profile', profile,
                                       '--method', method, '--out', str(out),
                                       '--set', *overrides])
-    tr = Trainer(args)
+    tr = Trainer(RunArgs.from_cli(args))
     cfg = tr.cfg
     while tr.timestep < warmup:  # uniform exploration fills the buffer
         tr.collect()
@@ -55,7 +55,7 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
         env.step = timed
     act = _Timed(tr.agent.act)
     tr.agent.act = act
-    tr._log_episode = lambda task: None
+    tr.logs.episode = lambda trainer, task: None
     tr.agent.timers = {}
     sample_t = collect_t = 0.0
     env0 = tr.env_steps

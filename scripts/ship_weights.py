@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from sim_node.families import get_family, SPLITS
+from zeus_ros.adaptation import build_report, ReportConfig
 from zeus_ros.core.inference import InferenceModel
 from zeus_ros.evaluate import evaluate
 
@@ -45,6 +46,8 @@ def main(argv=None) -> int:
     parser.add_argument('--episodes', type=int, default=2, help='evaluation episodes per value')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--note', default='', help='a line for the record')
+    parser.add_argument('--no-report', action='store_true',
+                        help='skip the adaptation report (zeus_ros.adaptation)')
     args = parser.parse_args(argv)
     args.dest.mkdir(parents=True, exist_ok=True)
     for name in SHIPPED:
@@ -56,17 +59,24 @@ def main(argv=None) -> int:
                for split in SPLITS if spec.split(split)}
     meta = model.metadata
     record = {
-        'family': model.family, 'command': args.command, 'seed': meta['config'].get('seed'),
-        'steps': meta['steps'], 'training_wall_s': training_wall_time(args.run),
+        'family': model.family, 'method': model.method_name, 'command': args.command,
+        'seed': meta.get('seed'),
+        'steps': meta['steps'],
+        'training_wall_s': meta['steps'].get('wall_s') or training_wall_time(args.run),
         'alpha_psi': meta['config'].get('alpha_psi'), 'git_commit': meta.get('git_commit'),
         'eval_episodes_per_value': args.episodes, 'eval_seed': args.seed,
         'eval_wall_s': time.monotonic() - started, 'results': results,
         'size_bytes': {n: (args.dest / n).stat().st_size for n in SHIPPED},
         'note': args.note,
     }
+    if not args.no_report:
+        report = build_report(str(args.dest), ReportConfig(episodes=args.episodes))
+        (args.dest / 'adaptation.json').write_text(report.to_json())
+        record['adaptation_report'] = 'adaptation.json'
     (args.dest / 'record.json').write_text(json.dumps(record, indent=2))
     lines = [f'# {args.dest.name}', '', f'- family: `{model.family}` '
-             f'({spec.param_name}), alpha_psi = {record["alpha_psi"]}',
+             f'({spec.param_name}), method `{record["method"]}`, seed {record["seed"]}, '
+             f'alpha_psi = {record["alpha_psi"]}',
              f'- command: `{args.command}`',
              f'- steps: {meta["steps"]}',
              f'- training wall time: {record["training_wall_s"]:.0f} s on a 2-core CPU'

@@ -1,6 +1,7 @@
 """A short, tiny training run writes a checkpoint that `evaluate` loads and runs."""
 
 import csv
+import shutil
 
 import numpy as np
 import pytest
@@ -83,16 +84,37 @@ def test_run_episode_order_and_determinism(run_dir):
     np.testing.assert_array_equal(r4.actions, r1.actions)
 
 
-def test_resume_continues_from_checkpoint(run_dir, capsys):
-    argv = ['--family', FAMILY, '--steps', '170', '--seed', '3', '--out', str(run_dir),
+def test_checkpoint_records_seed_and_run_arguments(run_dir):
+    meta = InferenceModel.load(run_dir).metadata
+    assert meta['seed'] == 3 and meta['run']['seed'] == 3
+    assert meta['run']['method'] == 'zeus' and meta['run']['overrides']['hidden_dim'] == 32
+    assert meta['steps']['wall_s'] > 0
+
+
+def test_periodic_evaluation_is_the_eval_clis_evaluator(run_dir):
+    """The trainer's eval rows equal evaluate.evaluate on the checkpoint it saved then."""
+    rows = list(csv.DictReader(open(run_dir / 'eval_log.csv')))
+    model = InferenceModel.load(run_dir)
+    again = evaluate.evaluate(model, [float(r['value']) for r in rows], 1, train.EVAL_SEED,
+                              max_steps=30)
+    for logged, fresh in zip(rows, again, strict=True):
+        assert float(logged['return']) == pytest.approx(fresh['mean_return'], abs=1e-4)
+
+
+def test_resume_continues_from_checkpoint(run_dir, tmp_path, capsys):
+    own = tmp_path / 'run'
+    shutil.copytree(run_dir, own)   # this test must not change the shared run
+    wall_before = InferenceModel.load(own).metadata['steps']['wall_s']
+    argv = ['--family', FAMILY, '--steps', '170', '--seed', '3', '--out', str(own),
             '--eval-every', '0', '--checkpoint-every', '1000', '--log-every', '10',
             '--quiet', '--resume', '--set', *TINY]
     assert train.main(argv) == 0
     assert 'resumed at timestep 150' in capsys.readouterr().out
-    model = InferenceModel.load(run_dir)
+    model = InferenceModel.load(own)
     assert model.metadata['steps']['timestep'] == 170
+    assert model.metadata['steps']['wall_s'] > wall_before   # wall time keeps counting
     # a different config cannot resume this run
     bad = [*argv, 'hidden_dim=64']
     assert train.main(bad) == 2
     with pytest.raises(CheckpointError):
-        InferenceModel.load(run_dir, expected_family='walker-walk-v0')
+        InferenceModel.load(own, expected_family='walker-walk-v0')

@@ -128,8 +128,13 @@ def _load_optimizer(name: str, opt: torch.optim.Optimizer, tensors: dict) -> Non
     opt.load_state_dict(sd)
 
 
-def build_metadata(agent, env_info: dict, counters: dict) -> dict:
-    """Metadata dict (without file hashes) for an agent and its environment."""
+def build_metadata(agent, env_info: dict, counters: dict, run: dict | None = None,
+                   wall_s: float | None = None) -> dict:
+    """Metadata dict (without file hashes) for an agent and its environment.
+
+    `run`: the training run's arguments (seed included); `wall_s`: its training
+    wall time so far, across resumes.
+    """
     cfg: ZeusConfig = agent.config
     return {
         'format_version': FORMAT_VERSION,
@@ -153,14 +158,16 @@ def build_metadata(agent, env_info: dict, counters: dict) -> dict:
                                 'train_values': list(env_info['train_values'])},
         'control_timestep': env_info.get('control_timestep'),
         'config': cfg.to_dict(),
-        'steps': dict(counters),
+        'steps': dict(counters, **({} if wall_s is None else {'wall_s': round(wall_s, 2)})),
+        'run': run,
+        'seed': None if run is None else run.get('seed'),
         'git_commit': git_commit(),
         'created_unix': time.time(),
     }
 
 
 def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dict | None = None,
-                    replay=None) -> Path:
+                    replay=None, run: dict | None = None, wall_s: float | None = None) -> Path:
     """Write a checkpoint directory atomically (temp dir, then rename); return its path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -188,7 +195,7 @@ def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dic
         for key, arr in replay.state_arrays().items():
             state[key] = torch.from_numpy(arr)
     save_file(state, str(tmp / STATE_FILE))
-    meta = build_metadata(agent, env_info, counters)
+    meta = build_metadata(agent, env_info, counters, run, wall_s)
     meta['files'] = {f: {'sha256': sha256_file(tmp / f), 'bytes': (tmp / f).stat().st_size}
                      for f in (MODEL_FILE, STATE_FILE)}
     meta['replay_saved'] = replay is not None

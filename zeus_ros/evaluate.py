@@ -23,6 +23,7 @@ that step's context is computed (a live parameter swap; the window is kept).
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import dataclass, field
 import sys
 
@@ -138,10 +139,10 @@ def evaluate(model: InferenceModel, values, episodes: int, seed: int,
         recs = [run_episode(model, model.family, v, seed + e, max_steps=max_steps)
                 for e in range(episodes)]
         returns = [r.episode_return for r in recs]
+        full = np.concatenate([r.estimates[model.k:] for r in recs])
         rows.append({'value': v, 'mean_return': float(np.mean(returns)),
                      'std_return': float(np.std(returns)), 'episodes': episodes,
-                     'mean_estimate': float(np.mean([np.nanmean(r.estimates[5:])
-                                                     for r in recs]))})
+                     'mean_estimate': float(np.mean(full)) if full.size else math.nan})
     return rows
 
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-from dataclasses import fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 import signal
 import sys
@@ -40,10 +40,12 @@ from zeus_ros.checkpoint import (CheckpointError, load_training_checkpoint,
                                  numpy_generator_state, restore_numpy_generator,
                                  save_checkpoint)
 from zeus_ros.core.agent import Agent, param_normaliser
+from zeus_ros.core.inference import InferenceModel
 from zeus_ros.core.config import PROFILES, ZeusConfig, make_config
 from zeus_ros.core.methods import METHODS
 from zeus_ros.core.replay import ReplayBuffer
 from zeus_ros.core.window import ContextWindow
+from zeus_ros.evaluate import evaluate
 
 TRAIN_COLUMNS = ('timestep', 'env_steps', 'wall_s', 'env_steps_per_s', 'critic_loss', 'q1',
                  'actor_loss', 'alpha_loss', 'alpha', 'entropy', 'dynamics_loss',
@@ -61,42 +63,6 @@ def env_info(env: ParamEnv) -> dict:
 def make_agent(cfg: ZeusConfig, env: ParamEnv) -> Agent:
     """Agent sized for the env, with the parameter normalised on the train values."""
     return Agent(cfg, env.obs_dim, env.action_dim, param_normaliser(env.spec.train))
-
-
-def evaluate_agent(agent: Agent, family: str, values, episodes: int = 1, seed: int = 0,
-                   max_steps: int | None = None) -> dict[float, float]:
-    """Mean deterministic return per value; all (value, episode) pairs step in one batch."""
-    cfg = agent.config
-    steps = max_steps or cfg.episode_steps
-    jobs = [(v, e) for v in values for e in range(episodes)]
-    if not jobs:
-        return {}
-    envs = [ParamEnv(family, v, seed=None, episode_steps=steps) for v, _ in jobs]
-    # A different start state per job: one seed for every value would make the
-    # whole evaluation hinge on a single (possibly unlucky) initial pose.
-    obs = [env.reset(seed=10_000 + 1000 * seed + j) for j, env in enumerate(envs)]
-    windows = [ContextWindow(cfg.context_length, env.obs_dim, env.action_dim) for env in envs]
-    returns = np.zeros(len(jobs))
-    active = np.ones(len(jobs), bool)
-    for _ in range(steps):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        ctx = [windows[i].arrays() for i in idx]
-        actions = agent.act(np.stack([obs[i] for i in idx]), np.stack([c[0] for c in ctx]),
-                            np.stack([c[1] for c in ctx]), [jobs[i][0] for i in idx],
-                            deterministic=True)
-        for j, i in enumerate(idx):
-            res = envs[i].step(actions[j])
-            returns[i] += res.reward
-            windows[i].push(obs[i], actions[j], res.reward, res.observation)
-            obs[i] = res.observation
-            if res.truncated or res.terminal or res.instability:
-                active[i] = False
-    out: dict[float, list] = {}
-    for (v, _), r in zip(jobs, returns, strict=True):
-        out.setdefault(v, []).append(r)
-    return {v: float(np.mean(r)) for v, r in out.items()}
 
 
 class CsvLog:
@@ -143,6 +109,7 @@ def parse_overrides(items) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """Command-line arguments of `train`; `RunArgs.from_cli` types them."""
     p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n')[0])
     p.add_argument('--family', default='walker-walk-v0', choices=sorted(FAMILIES))
     p.add_argument('--steps', type=int, default=100_000,
@@ -172,22 +139,66 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@dataclass(frozen=True)
+class RunArgs:
+    """What one training run was asked to do; stored in its checkpoint metadata."""
+
+    out: Path
+    family: str = 'walker-walk-v0'
+    method: str = 'zeus'
+    profile: str = 'cpu'
+    steps: int = 100_000
+    seed: int = 1
+    overrides: dict = field(default_factory=dict)
+    eval_every: int = 10_000
+    eval_episodes: int = 1
+    eval_max_steps: int | None = None
+    eval_splits: tuple = SPLITS
+    checkpoint_every: int = 5000
+    log_every: int = 500
+    time_limit: float | None = None
+    save_replay: bool = True
+    resume: bool = False
+    quiet: bool = False
+
+    @classmethod
+    def from_cli(cls, ns: argparse.Namespace) -> 'RunArgs':
+        """Type a parsed command line (the config overrides of --set and --alpha-psi)."""
+        overrides = parse_overrides(ns.set)
+        if ns.alpha_psi is not None:
+            overrides['alpha_psi'] = ns.alpha_psi
+        return cls(out=Path(ns.out), family=ns.family, method=ns.method, profile=ns.profile,
+                   steps=ns.steps, seed=ns.seed, overrides=overrides,
+                   eval_every=ns.eval_every, eval_episodes=ns.eval_episodes,
+                   eval_max_steps=ns.eval_max_steps, eval_splits=tuple(ns.eval_splits),
+                   checkpoint_every=ns.checkpoint_every, log_every=ns.log_every,
+                   time_limit=ns.time_limit, save_replay=not ns.no_save_replay,
+                   resume=ns.resume, quiet=ns.quiet)
+
+    def to_json_dict(self) -> dict:
+        """JSON-ready fields (for the metadata and the records)."""
+        out = asdict(self)
+        out['out'] = str(self.out)
+        out['eval_splits'] = list(self.eval_splits)
+        return out
+
+
+# Fixed evaluation start states, the same for every run, method and seed.
+EVAL_SEED = 10_000
+
+
 class Trainer:
     """State of one training run: envs, windows, agent, replay, logs."""
 
-    def __init__(self, args):
+    def __init__(self, args: RunArgs):
         self.args = args
-        overrides = parse_overrides(args.set)
-        if args.alpha_psi is not None:
-            overrides['alpha_psi'] = args.alpha_psi
-        self.cfg = cfg = make_config(args.family, args.profile, args.method, **overrides)
+        self.cfg = cfg = make_config(args.family, args.profile, args.method, **args.overrides)
         torch.set_num_threads(cfg.num_threads)
         torch.manual_seed(args.seed)
         self.rng = np.random.default_rng(args.seed)
         self.out = Path(args.out)
         self.out.mkdir(parents=True, exist_ok=True)
-        spec = FAMILIES[args.family]
-        self.values = spec.train
+        self.values = FAMILIES[args.family].train
         self.envs = [ParamEnv(args.family, v, seed=None, episode_steps=cfg.episode_steps)
                      for v in self.values]
         env0 = self.envs[0]
@@ -197,24 +208,32 @@ class Trainer:
         self.windows = [ContextWindow(cfg.context_length, env0.obs_dim, env0.action_dim)
                         for _ in self.envs]
         self.timestep = self.env_steps = self.episodes = 0
-        self.resumed = None
-        if args.resume:
-            self.resumed = load_training_checkpoint(self.out / 'checkpoint', self.agent,
-                                                    self.replay)
-            self.timestep = self.resumed['timestep']
-            self.env_steps = self.resumed['env_steps']
-            self.episodes = self.resumed['episodes']
-            if 'trainer' in self.resumed['rng_states']:
-                restore_numpy_generator(self.rng, self.resumed['rng_states']['trainer'])
-            if 'replay' in self.resumed['rng_states']:
-                restore_numpy_generator(self.replay.rng, self.resumed['rng_states']['replay'])
+        self.wall_before = 0.0   # training wall time of the runs this one resumes
+        self.resumed = self._resume() if args.resume else None
         self.obs = [env.reset(seed=self._episode_seed(i)) for i, env in enumerate(self.envs)]
         self.ep_returns = np.zeros(len(self.envs))
         self.last_returns = np.full(len(self.envs), np.nan)
-        self.writer = None
+        self.logs = TrainingLogs(self.out)
+
+    def _resume(self) -> dict:
+        resumed = load_training_checkpoint(self.out / 'checkpoint', self.agent, self.replay)
+        self.timestep = resumed['timestep']
+        self.env_steps = resumed['env_steps']
+        self.episodes = resumed['episodes']
+        self.wall_before = float(resumed['metadata']['steps'].get('wall_s', 0.0))
+        rngs = resumed['rng_states']
+        if 'trainer' in rngs:
+            restore_numpy_generator(self.rng, rngs['trainer'])
+        if 'replay' in rngs:
+            restore_numpy_generator(self.replay.rng, rngs['replay'])
+        return resumed
 
     def _episode_seed(self, task: int) -> int:
         return (self.args.seed * 1_000_003 + self.timestep * 101 + task) % (2 ** 31)
+
+    def wall_s(self) -> float:
+        """Training wall time so far, across resumes."""
+        return self.wall_before + time.monotonic() - self.started
 
     def checkpoint(self) -> None:
         counters = {'timestep': self.timestep, 'env_steps': self.env_steps,
@@ -222,7 +241,8 @@ class Trainer:
         rngs = {'trainer': numpy_generator_state(self.rng),
                 'replay': numpy_generator_state(self.replay.rng)}
         save_checkpoint(self.out / 'checkpoint', self.agent, env_info(self.envs[0]), counters,
-                        rngs, None if self.args.no_save_replay else self.replay)
+                        rngs, self.replay if self.args.save_replay else None,
+                        run=self.args.to_json_dict(), wall_s=self.wall_s())
 
     def collect(self) -> None:
         """One timestep: every training task steps once; transitions go to the replay."""
@@ -234,114 +254,151 @@ class Trainer:
             actions = self.agent.act(np.stack(self.obs), np.stack([c[0] for c in ctx]),
                                      np.stack([c[1] for c in ctx]), self.values)
         for i, env in enumerate(self.envs):
-            res = env.step(actions[i])
-            self.env_steps += 1
-            if res.instability:
-                # The env restarted itself; the transition has no true s'.
-                self.windows[i].clear()
-                self.obs[i] = res.observation
-                self.ep_returns[i] = 0.0
-                continue
-            w = self.windows[i]
-            continues = w.fill > 0
-            w.push(self.obs[i], actions[i], res.reward, res.observation)
-            # Time-limit truncation is not a terminal: bootstrap through it.
-            self.replay.add(self.obs[i], actions[i], res.reward, res.observation,
-                            res.terminal, i, self.values[i], continues)
-            self.ep_returns[i] += res.reward
-            self.obs[i] = res.observation
-            if res.terminal or res.truncated:
-                self.episodes += 1
-                self._log_episode(i)
-                w.clear()
-                self.obs[i] = env.reset(seed=self._episode_seed(i))
-                self.ep_returns[i] = 0.0
+            self._step_task(i, env, actions[i])
 
-    def _log_episode(self, task: int) -> None:
-        self.episode_log.write({'timestep': self.timestep, 'env_steps': self.env_steps,
-                                'task': task, 'value': self.values[task],
-                                'return': round(float(self.ep_returns[task]), 4)})
-        self.writer.add_scalar(f'train_return/task{task}', self.ep_returns[task],
-                               self.env_steps)
-        self.last_returns[task] = self.ep_returns[task]
+    def _step_task(self, i: int, env: ParamEnv, action: np.ndarray) -> None:
+        res = env.step(action)
+        self.env_steps += 1
+        w = self.windows[i]
+        if res.instability:
+            # The env restarted itself; the transition has no true s'.
+            w.clear()
+            self.obs[i] = res.observation
+            self.ep_returns[i] = 0.0
+            return
+        continues = w.fill > 0
+        w.push(self.obs[i], action, res.reward, res.observation)
+        # Time-limit truncation is not a terminal: bootstrap through it.
+        self.replay.add(self.obs[i], action, res.reward, res.observation, res.terminal, i,
+                        self.values[i], continues)
+        self.ep_returns[i] += res.reward
+        self.obs[i] = res.observation
+        if res.terminal or res.truncated:
+            self.episodes += 1
+            self.logs.episode(self, i)
+            self.last_returns[i] = self.ep_returns[i]
+            w.clear()
+            self.obs[i] = env.reset(seed=self._episode_seed(i))
+            self.ep_returns[i] = 0.0
 
     def evaluate(self) -> dict:
-        args = self.args
+        """Mean deterministic return per split, with the ROS episode's evaluator."""
+        threads = torch.get_num_threads()
+        model = InferenceModel.from_agent(self.agent, env_info(self.envs[0]))
+        spec = FAMILIES[self.args.family]
         results = {}
-        spec = FAMILIES[args.family]
-        for split in args.eval_splits:
-            values = spec.split(split)
-            if not values:
-                continue
-            res = evaluate_agent(self.agent, args.family, values, args.eval_episodes,
-                                 seed=args.seed, max_steps=args.eval_max_steps)
-            for v, r in res.items():
-                self.eval_log.write({'timestep': self.timestep, 'env_steps': self.env_steps,
-                                     'split': split, 'value': v, 'return': round(r, 4)})
-            mean = float(np.mean(list(res.values())))
-            self.writer.add_scalar(f'eval/{split}_mean_return', mean, self.env_steps)
-            results[split] = mean
+        try:
+            for split in self.args.eval_splits:
+                values = spec.split(split)
+                if values:
+                    rows = evaluate(model, values, self.args.eval_episodes, EVAL_SEED,
+                                    self.args.eval_max_steps)
+                    results[split] = self.logs.evaluation(self, split, rows)
+        finally:
+            torch.set_num_threads(threads)   # the evaluator runs on one thread
         return results
 
+    def _update(self) -> None:
+        if self.timestep > self.cfg.init_steps:
+            metrics = self.agent.update(self.replay.sample(self.cfg.batch_size), self.timestep)
+            self.logs.accumulate(metrics)
+
+    def _periodic(self, bar) -> bool:
+        """Log, evaluate and checkpoint when due at this timestep; True = stop now."""
+        args = self.args
+        if self.timestep % args.log_every == 0:
+            self.logs.train_row(self, bar)
+        if args.eval_every and self.timestep % args.eval_every == 0:
+            evals = self.evaluate()
+            tqdm.write(f'[eval t={self.timestep} env_steps={self.env_steps}] '
+                       + ' '.join(f'{k}={v:.1f}' for k, v in evals.items()))
+        if self.timestep % args.checkpoint_every == 0:
+            self.checkpoint()
+        if args.time_limit and time.monotonic() - self.started > 60 * args.time_limit:
+            tqdm.write(f'time limit reached at timestep {self.timestep}')
+            return True
+        return False
+
     def run(self) -> dict:
-        from torch.utils.tensorboard import SummaryWriter
-        args, cfg = self.args, self.cfg
-        self.writer = SummaryWriter(str(self.out / 'tb'))
-        self.train_log = CsvLog(self.out / 'train_log.csv', TRAIN_COLUMNS)
-        self.eval_log = CsvLog(self.out / 'eval_log.csv',
-                               ('timestep', 'env_steps', 'split', 'value', 'return'))
-        self.episode_log = CsvLog(self.out / 'episodes.csv',
-                                  ('timestep', 'env_steps', 'task', 'value', 'return'))
-        start = time.monotonic()
-        last_t, last_env = start, self.env_steps
-        sums: dict[str, float] = {}
-        counts: dict[str, int] = {}
-        evals = {}
+        """Train until `steps` timesteps (or the time limit); checkpoint on any exit."""
+        args = self.args
+        self.started = time.monotonic()
+        self.logs.restart_rate(self)
         bar = tqdm(total=args.steps, initial=min(self.timestep, args.steps),
                    disable=args.quiet, unit='ts', dynamic_ncols=True)
         try:
             while self.timestep < args.steps:
                 self.collect()
                 self.timestep += 1
-                if self.timestep > cfg.init_steps:
-                    m = self.agent.update(self.replay.sample(cfg.batch_size), self.timestep)
-                    for k, v in m.items():
-                        sums[k] = sums.get(k, 0.0) + float(v)
-                        counts[k] = counts.get(k, 0) + 1
+                self._update()
                 bar.update(1)
-                if self.timestep % args.log_every == 0:
-                    now = time.monotonic()
-                    row = {k: sums[k] / counts[k] for k in sums}
-                    row.update(timestep=self.timestep, env_steps=self.env_steps,
-                               wall_s=round(now - start, 2),
-                               env_steps_per_s=(self.env_steps - last_env) / (now - last_t))
-                    for k, v in row.items():
-                        if k not in ('timestep', 'env_steps'):
-                            self.writer.add_scalar(f'train/{k}', v, self.env_steps)
-                    self.train_log.write(row)
-                    bar.set_postfix(sps=f'{row["env_steps_per_s"]:.0f}',
-                                    ret=f'{np.nanmean(self.last_returns):.0f}'
-                                    if np.isfinite(self.last_returns).any() else '-')
-                    last_t, last_env = now, self.env_steps
-                    sums, counts = {}, {}
-                if args.eval_every and self.timestep % args.eval_every == 0:
-                    evals = self.evaluate()
-                    tqdm.write(f'[eval t={self.timestep} env_steps={self.env_steps}] '
-                               + ' '.join(f'{k}={v:.1f}' for k, v in evals.items()))
-                if self.timestep % args.checkpoint_every == 0:
-                    self.checkpoint()
-                if args.time_limit and time.monotonic() - start > 60 * args.time_limit:
-                    tqdm.write(f'time limit reached at timestep {self.timestep}')
+                if self._periodic(bar):
                     break
         finally:
             bar.close()
             self.checkpoint()
-            self.writer.close()
-            for log in (self.train_log, self.eval_log, self.episode_log):
-                log.close()
-        elapsed = time.monotonic() - start
+            self.logs.close()
         return {'timestep': self.timestep, 'env_steps': self.env_steps,
-                'elapsed_s': elapsed, 'eval': evals}
+                'elapsed_s': time.monotonic() - self.started, 'wall_s': self.wall_s()}
+
+
+class TrainingLogs:
+    """The run's CSV logs and TensorBoard scalars, open from the trainer's construction."""
+
+    def __init__(self, out: Path):
+        from torch.utils.tensorboard import SummaryWriter
+        self.writer = SummaryWriter(str(out / 'tb'))
+        self.train = CsvLog(out / 'train_log.csv', TRAIN_COLUMNS)
+        self.eval = CsvLog(out / 'eval_log.csv',
+                           ('timestep', 'env_steps', 'wall_s', 'split', 'value', 'return'))
+        self.episodes = CsvLog(out / 'episodes.csv',
+                               ('timestep', 'env_steps', 'task', 'value', 'return'))
+        self.sums: dict[str, float] = {}
+        self.counts: dict[str, int] = {}
+        self.last_t, self.last_env = time.monotonic(), 0
+
+    def accumulate(self, metrics: dict) -> None:
+        for k, v in metrics.items():
+            self.sums[k] = self.sums.get(k, 0.0) + float(v)
+            self.counts[k] = self.counts.get(k, 0) + 1
+
+    def restart_rate(self, tr: Trainer) -> None:
+        self.last_t, self.last_env = time.monotonic(), tr.env_steps
+
+    def train_row(self, tr: Trainer, bar) -> None:
+        now = time.monotonic()
+        row = {k: self.sums[k] / self.counts[k] for k in self.sums}
+        row.update(timestep=tr.timestep, env_steps=tr.env_steps, wall_s=round(tr.wall_s(), 2),
+                   env_steps_per_s=(tr.env_steps - self.last_env) / max(now - self.last_t, 1e-9))
+        for k, v in row.items():
+            if k not in ('timestep', 'env_steps'):
+                self.writer.add_scalar(f'train/{k}', v, tr.env_steps)
+        self.train.write(row)
+        finite = np.isfinite(tr.last_returns)
+        bar.set_postfix(sps=f'{row["env_steps_per_s"]:.0f}',
+                        ret=f'{np.nanmean(tr.last_returns):.0f}' if finite.any() else '-')
+        self.last_t, self.last_env = now, tr.env_steps
+        self.sums, self.counts = {}, {}
+
+    def episode(self, tr: Trainer, task: int) -> None:
+        self.episodes.write({'timestep': tr.timestep, 'env_steps': tr.env_steps, 'task': task,
+                             'value': tr.values[task],
+                             'return': round(float(tr.ep_returns[task]), 4)})
+        self.writer.add_scalar(f'train_return/task{task}', tr.ep_returns[task], tr.env_steps)
+
+    def evaluation(self, tr: Trainer, split: str, rows: list[dict]) -> float:
+        for r in rows:
+            self.eval.write({'timestep': tr.timestep, 'env_steps': tr.env_steps,
+                             'wall_s': round(tr.wall_s(), 2), 'split': split,
+                             'value': r['value'], 'return': round(r['mean_return'], 4)})
+        mean = float(np.mean([r['mean_return'] for r in rows]))
+        self.writer.add_scalar(f'eval/{split}_mean_return', mean, tr.env_steps)
+        return mean
+
+    def close(self) -> None:
+        self.writer.close()
+        for log in (self.train, self.eval, self.episodes):
+            log.close()
 
 
 def _raise_interrupt(signum, frame):
@@ -350,7 +407,7 @@ def _raise_interrupt(signum, frame):
 
 def main(argv=None) -> int:
     """Console entry point (`train`)."""
-    args = build_parser().parse_args(argv)
+    args = RunArgs.from_cli(build_parser().parse_args(argv))
     # SIGTERM ends the run like Ctrl-C: the `finally` of Trainer.run checkpoints.
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _raise_interrupt)
@@ -369,8 +426,8 @@ def main(argv=None) -> int:
         return 130
     rate = result['env_steps'] / max(result['elapsed_s'], 1e-9)
     print(f'done: timestep {result["timestep"]}, env steps {result["env_steps"]}, '
-          f'{result["elapsed_s"]:.0f} s ({rate:.0f} env steps/s); '
-          f'checkpoint in {args.out / "checkpoint"}')
+          f'{result["elapsed_s"]:.0f} s this session ({rate:.0f} env steps/s), '
+          f'{result["wall_s"]:.0f} s in all; checkpoint in {args.out / "checkpoint"}')
     return 0
 
 

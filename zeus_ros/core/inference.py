@@ -23,7 +23,7 @@ import math
 import numpy as np
 import torch
 
-from zeus_ros.checkpoint import load_model
+from zeus_ros.checkpoint import build_metadata, load_model
 
 
 def _single_thread() -> None:
@@ -51,6 +51,12 @@ class InferenceModel:
         norm = metadata['param_normalisation']
         self.param_offset = float(norm['offset'])
         self.param_scale = float(norm['scale'])
+
+    @classmethod
+    def from_agent(cls, agent, env_info: dict) -> 'InferenceModel':
+        """Wrap an agent in memory in the deployed functions (the trainer's evaluation)."""
+        meta = build_metadata(agent, env_info, {})
+        return cls(meta, agent.method, agent.inference_modules())
 
     @classmethod
     def load(cls, path, expected_family: str | None = None, obs_dim: int | None = None,

@@ -118,3 +118,14 @@ def test_resume_continues_from_checkpoint(run_dir, tmp_path, capsys):
     assert train.main(bad) == 2
     with pytest.raises(CheckpointError):
         InferenceModel.load(own, expected_family='walker-walk-v0')
+
+
+def test_csv_log_keeps_the_header_a_resumed_run_started_with(tmp_path):
+    path = tmp_path / 'log.csv'
+    old = train.CsvLog(path, ('a', 'b'))
+    old.write({'a': 1, 'b': 2})
+    old.close()
+    resumed = train.CsvLog(path, ('a', 'new', 'b'))
+    resumed.write({'a': 3, 'new': 9, 'b': 4})
+    resumed.close()
+    assert list(csv.DictReader(open(path))) == [{'a': '1', 'b': '2'}, {'a': '3', 'b': '4'}]

@@ -70,7 +70,10 @@ class CsvLog:
 
     def __init__(self, path: Path, columns):
         self.columns = tuple(columns)
-        new = not path.exists()
+        new = not path.exists() or path.stat().st_size == 0
+        if not new:  # a resumed run keeps the header it started with
+            with open(path, newline='') as existing:
+                self.columns = tuple(next(csv.reader(existing), self.columns))
         self.file = open(path, 'a', newline='')
         self.writer = csv.DictWriter(self.file, self.columns, extrasaction='ignore')
         if new:

@@ -1,6 +1,7 @@
 """Checkpoints: round trip, resume state, and refusal of corrupt or mismatched ones."""
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -180,12 +181,39 @@ def test_shape_mismatch_refused_even_with_matching_hash(saved):
         InferenceModel.load(path)
 
 
-def test_never_uses_pickle():
-    import zeus_ros.checkpoint as ck
-    import zeus_ros.core.inference as inf
-    for mod in (ck, inf):
-        src = open(mod.__file__).read()
-        assert 'torch.load(' not in src and 'import pickle' not in src
+class _Payload:
+    """Unpickling this creates a marker file: proof that a loader executed a pickle."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, 'w'))
+
+
+@pytest.mark.parametrize('where', [MODEL_FILE, STATE_FILE])
+@pytest.mark.parametrize('kind', ['pickle', 'torch.save'])
+def test_pickle_payload_in_place_of_weights_is_refused_unexecuted(saved, env, tmp_path,
+                                                                  where, kind):
+    _, _, path = saved
+    bad = tmp_path / 'bad'
+    shutil.copytree(path, bad)
+    marker = tmp_path / 'executed'
+    if kind == 'pickle':
+        import pickle
+        (bad / where).write_bytes(pickle.dumps(_Payload(marker)))
+    else:
+        torch.save({'phi.net.0.weight': _Payload(marker)}, bad / where)
+    meta = json.loads((bad / 'metadata.json').read_text())
+    meta['files'][where] = {'sha256': sha256_file(bad / where),
+                            'bytes': (bad / where).stat().st_size}
+    (bad / 'metadata.json').write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match='not a valid safetensors'):
+        if where == MODEL_FILE:
+            InferenceModel.load(bad)
+        else:
+            load_training_checkpoint(bad, make_agent(tiny(), env))
+    assert not marker.exists()
 
 
 @pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'zeus-no-context-loss'])
@@ -224,4 +252,50 @@ def test_non_finite_weights_refused(saved, tmp_path):
                                  'bytes': (bad / MODEL_FILE).stat().st_size}
     (bad / 'metadata.json').write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match='non-finite'):
+        InferenceModel.load(bad)
+
+
+def _drop(path):
+    def edit(meta):
+        node = meta
+        for key in path[:-1]:
+            node = node[key]
+        del node[path[-1]]
+    return edit
+
+
+def _put(path, value):
+    def edit(meta):
+        node = meta
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = value
+    return edit
+
+
+@pytest.mark.parametrize('edit, field', [
+    (_drop(['obs_layout', 'obs_dim']), 'obs_layout.obs_dim: missing'),
+    (_drop(['context', 'k']), 'context.k: missing'),
+    (_drop(['files', MODEL_FILE, 'sha256']), 'sha256: missing'),
+    (_drop(['param_name']), 'param_name: missing'),
+    (_drop(['action_layout', 'actuator_names']), 'action_layout.actuator_names: missing'),
+    (_put(['context', 'k'], 0), 'context.k: must be >= 1'),
+    (_put(['context', 'k'], 'five'), 'context.k: must be an integer'),
+    (_put(['context', 'k'], True), 'context.k: must be an integer'),
+    (_put(['config'], []), 'config: must be an object'),
+    (_put(['files'], []), 'files: must be an object'),
+    (_put(['obs_layout', 'joint_names'], 'rootz'), 'obs_layout.joint_names: must be a list'),
+    (_put(['param_normalisation', 'scale'], float('nan')), 'scale: must be a finite number'),
+    (_put(['context', 'row_dim'], 3), 'context.row_dim: must be 2'),
+    (_put(['action_layout', 'actuator_names'], ['a']), 'actuator_names: has 1 names'),
+    (_put(['config', 'context_length'], 'x'), 'config'),
+])
+def test_malformed_metadata_refused_naming_the_field(saved, tmp_path, edit, field):
+    _, _, path = saved
+    bad = tmp_path / 'bad'
+    shutil.copytree(path, bad)
+    meta = json.loads((bad / 'metadata.json').read_text())
+    edit(meta)
+    (bad / 'metadata.json').write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match=re.escape(field)):
         InferenceModel.load(bad)

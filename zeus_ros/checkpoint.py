@@ -39,6 +39,7 @@ from safetensors.torch import load_file, save_file
 import torch
 
 from zeus_ros.core.config import ZeusConfig
+from zeus_ros.metadata import CheckpointMetadata, MetadataError
 
 FORMAT_VERSION = 1
 MODEL_FILE = 'model.safetensors'
@@ -46,8 +47,6 @@ STATE_FILE = 'training_state.safetensors'
 METADATA_FILE = 'metadata.json'
 # Config fields that may differ when resuming (they do not change the learned state).
 RESUME_FREE_KEYS = frozenset({'num_threads'})
-REQUIRED_KEYS = ('format_version', 'family', 'obs_layout', 'action_layout', 'context',
-                 'param_normalisation', 'config', 'steps', 'files')
 
 
 class CheckpointError(Exception):
@@ -219,25 +218,23 @@ def load_metadata(path, expected_family: str | None = None, obs_dim: int | None 
                               f'{error}') from None
     if not isinstance(meta, dict):
         raise CheckpointError(f'{path / METADATA_FILE} does not hold a JSON object')
-    missing = [k for k in REQUIRED_KEYS if k not in meta]
-    if missing:
-        raise CheckpointError(f'{path / METADATA_FILE} lacks keys {missing}')
-    if meta['format_version'] != FORMAT_VERSION:
-        raise CheckpointError(f'checkpoint format {meta["format_version"]}, '
+    try:
+        typed = CheckpointMetadata.parse(meta)
+        typed.zeus_config()
+    except MetadataError as error:
+        raise CheckpointError(f'{path / METADATA_FILE}: {error}') from None
+    if typed.format_version != FORMAT_VERSION:
+        raise CheckpointError(f'checkpoint format {typed.format_version}, '
                               f'this code reads {FORMAT_VERSION}')
-    if expected_family is not None and meta['family'] != expected_family:
-        raise CheckpointError(f'checkpoint is for family {meta["family"]!r}, '
+    if expected_family is not None and typed.family != expected_family:
+        raise CheckpointError(f'checkpoint is for family {typed.family!r}, '
                               f'expected {expected_family!r}')
-    if meta['config'].get('family') != meta['family']:
+    if typed.config.get('family') != typed.family:
         raise CheckpointError('metadata family and config family disagree')
-    for label, want, have in (('observation size', obs_dim, meta['obs_layout']['obs_dim']),
-                              ('action size', action_dim, meta['action_layout']['action_dim'])):
+    for label, want, have in (('observation size', obs_dim, typed.obs_layout.obs_dim),
+                              ('action size', action_dim, typed.action_layout.action_dim)):
         if want is not None and int(want) != int(have):
             raise CheckpointError(f'{label} mismatch: checkpoint has {have}, expected {want}')
-    try:
-        ZeusConfig.from_dict(meta['config'])
-    except (TypeError, ValueError) as error:
-        raise CheckpointError(f'config in metadata is invalid: {error}') from None
     return meta
 
 

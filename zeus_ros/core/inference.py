@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from zeus_ros.checkpoint import build_metadata, load_model
+from zeus_ros.metadata import CheckpointMetadata
 
 
 def _single_thread() -> None:
@@ -37,20 +38,20 @@ class InferenceModel:
 
     def __init__(self, metadata: dict, method, modules: dict):
         self.metadata = metadata
+        self.meta = CheckpointMetadata.parse(dict(metadata, files=metadata.get('files', {})))
         self.method = method
         self.phi = modules['phi']
         self.actor = modules['actor']
-        self.family = metadata['family']
-        self.method_name = metadata['config'].get('method', 'zeus')
+        self.family = self.meta.family
+        self.method_name = self.meta.context.method
         self.needs_true_param = method.needs_true_param
-        self.obs_dim = int(metadata['obs_layout']['obs_dim'])
-        self.action_dim = int(metadata['action_layout']['action_dim'])
-        self.k = int(metadata['context']['k'])
-        self.row_dim = int(metadata['context']['row_dim'])
+        self.obs_dim = self.meta.obs_layout.obs_dim
+        self.action_dim = self.meta.action_layout.action_dim
+        self.k = self.meta.context.k
+        self.row_dim = self.meta.context.row_dim
         self.context_dim = method.context_dim
-        norm = metadata['param_normalisation']
-        self.param_offset = float(norm['offset'])
-        self.param_scale = float(norm['scale'])
+        self.param_offset = self.meta.param_normalisation.offset
+        self.param_scale = self.meta.param_normalisation.scale
 
     @classmethod
     def from_agent(cls, agent, env_info: dict) -> 'InferenceModel':

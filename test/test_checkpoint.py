@@ -25,8 +25,7 @@ def tiny(method='zeus', **kw):
     base = dict(hidden_dim=32, context_dim=6, feature_dim=8, encoder_hidden=16,
                 context_hidden=16, dynamics_hidden=16, decoder_hidden=8,
                 batch_size_per_task=2, replay_capacity=100, num_threads=1)
-    if method == 'zeus-id':
-        base['context_length'] = 5
+    base['context_length'] = 5
     base.update(kw)
     return make_config(FAMILY, 'cpu', method, **base)
 
@@ -216,7 +215,8 @@ def test_pickle_payload_in_place_of_weights_is_refused_unexecuted(saved, env, tm
     assert not marker.exists()
 
 
-@pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'zeus-no-context-loss'])
+@pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'zeus-no-context-loss',
+                                    'cadm', 'up-osi', 'hyperdynamics'])
 def test_every_method_round_trips_and_resumes(env, tmp_path, method):
     agent, replay = trained_agent(env, tiny(method))
     path = save_checkpoint(tmp_path / method, agent, env_info(env),

@@ -392,13 +392,72 @@ def test_zeus_id_reads_deltas():
                               rows[..., -OBS:])
 
 
-@pytest.mark.parametrize('method', ['zeus', 'zeus-no-context-loss', 'sac', 'oracle', 'zeus-id'])
+ALL_METHODS = ['zeus', 'zeus-no-context-loss', 'sac', 'oracle', 'zeus-id', 'cadm', 'up-osi',
+               'hyperdynamics']
+
+
+@pytest.mark.parametrize('method', ALL_METHODS)
 def test_every_method_updates_and_acts(method):
-    kw = {'context_length': K} if method == 'zeus-id' else {}
-    agent, b = make_agent(method, **kw), make_batch()
+    agent, b = make_agent(method, context_length=K), make_batch()
     for _ in range(2):
         metrics = agent.update(b)
     assert np.isfinite([float(v) for v in metrics.values()]).all()
     rows, mask = ContextWindow(K, OBS, ACT).arrays()
     a = agent.act(np.ones(OBS), rows, mask, [1.0], deterministic=True)
     assert a.shape == (ACT,) and np.all(np.abs(a) <= 1)
+
+
+def test_cadm_backward_loss_reaches_its_encoder_and_the_critic_does_not():
+    agent, b = make_agent('cadm'), make_batch()
+    zero_all(agent)
+    agent.critic_loss(b)[0].backward()
+    assert no_grad(agent.method.psi)
+    m = agent.method
+    c = m.psi(b.ctx_rows, b.ctx_mask)
+    x, delta = m.standardised_step(b)
+    o, norm = OBS, m.psi.norm
+    x_next = (b.next_obs - norm.mean[:o]) / (norm.var[:o].sqrt() + 1e-4)
+    from zeus_ros.core.methods.common import gaussian_nll
+    zero_all(agent)
+    gaussian_nll(*m.models['T_backward'](x_next, b.action, c), -delta).backward()
+    assert has_grad(m.psi) and has_grad(m.models['T_backward'])
+    assert no_grad(m.models['T_forward'])
+
+
+def test_up_osi_trains_on_the_true_parameter_and_deploys_its_estimate():
+    agent, b = make_agent('up-osi', osi_warmup_updates=1), make_batch()
+    m = agent.method
+    c = m.encode(b.ctx_rows, b.ctx_mask, b.param)
+    assert torch.allclose(c[:, 0], (b.param - 0.8) / 0.55)   # UP sees the truth in training
+    zero_all(agent)
+    agent.critic_loss(b)[0].backward()
+    assert no_grad(m.psi)                                      # no policy gradient into OSI
+    assert torch.equal(m.deployed_context(b.ctx_rows, b.ctx_mask, b.param),
+                       m.psi(b.ctx_rows, b.ctx_mask))
+    assert torch.equal(m.acting_context(b.ctx_rows, b.ctx_mask, b.param), c)  # warm-up
+    agent.update(b)
+    assert torch.equal(m.acting_context(b.ctx_rows, b.ctx_mask, b.param),
+                       m.psi(b.ctx_rows, b.ctx_mask))        # after it, OSI acts
+    zero_all(agent)
+    loss, _, metrics = m.model_loss(b)
+    loss.backward()
+    assert 'osi_loss' in metrics and has_grad(m.psi)
+    for name in ('phi', 'critic', 'actor'):
+        assert no_grad(module(agent, name)), name
+
+
+def test_hyperdynamics_generates_per_context_weights_trained_through_the_encoder():
+    agent, b = make_agent('hyperdynamics'), make_batch()
+    m = agent.method
+    x = torch.randn(3, OBS + ACT)
+    c = torch.randn(3, 6)
+    mu_a, _ = m.models['hyper'](c, x)
+    mu_b, _ = m.models['hyper'](c.flip(0), x)
+    assert not torch.allclose(mu_a, mu_b)   # another context, another dynamics model
+    zero_all(agent)
+    loss, _, _ = m.model_loss(b)
+    loss.backward()
+    assert has_grad(m.psi) and has_grad(m.models['hyper'])
+    zero_all(agent)
+    agent.critic_loss(b)[0].backward()
+    assert has_grad(m.psi)   # trained jointly with the policy (context_critic_grad)

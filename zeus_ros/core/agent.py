@@ -140,7 +140,7 @@ class Agent:
             np.asarray(param, dtype=np.float32).reshape(-1))
         if single:
             obs_t, rows, mask = obs_t[None], rows[None], mask[None]
-        x = torch.cat([self.phi(obs_t), self.method.encode(rows, mask, p)], dim=-1)
+        x = torch.cat([self.phi(obs_t), self.method.acting_context(rows, mask, p)], dim=-1)
         if deterministic:
             action = self.actor.mean_action(x)
         else:

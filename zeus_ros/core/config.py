@@ -37,7 +37,7 @@ class ZeusConfig:
 
     family: str = _f('walker-walk-v0', 'Environment family (sim_node.families).')
     method: str = _f('zeus', 'Context method (zeus_ros.core.methods): zeus, '
-                     'zeus-no-context-loss, zeus-id, sac, oracle.')
+                     'zeus-no-context-loss, zeus-id, sac, oracle, cadm, up-osi, hyperdynamics.')
     profile: str = _f('cpu', "Preset the values came from: 'cpu' or 'paper'.")
     # -- context -------------------------------------------------------
     context_length: int = _f(5, 'k: transitions in the context window (Tables 8-9).')
@@ -52,6 +52,12 @@ class ZeusConfig:
         True, 'zeus-id: let the critic TD loss train psi (zeus always does).')
     metric_normalise: bool = _f(
         False, 'zeus-id: divide the task metric and latent distances by their batch means.')
+    backward_weight: float = _f(0.5, 'cadm: weight beta of the backward dynamics loss (Table 10).')
+    osi_warmup_updates: int = _f(
+        800, 'up-osi: updates that collect with the true parameter before OSI acts '
+        '(the paper: 3-5 of 500 iterations; 4/500 of 100k updates).')
+    hyper_model_hidden: int = _f(
+        64, 'hyperdynamics: hidden width of the generated dynamics model.')
     # -- observation encoder -------------------------------------------
     feature_dim: int = _f(50, 'Size of the latent state phi(s).')
     encoder_hidden: int = _f(256, 'Hidden width of the observation encoder phi.')

@@ -81,8 +81,8 @@ class InferenceModel:
             raise ValueError(f'window must be rows {(self.k, self.row_dim)} and mask '
                              f'({self.k},), got {rows.shape} and {mask.shape}')
         param = None if true_param is None else torch.tensor([float(true_param)])
-        latent = self.method.encode(torch.from_numpy(rows)[None], torch.from_numpy(mask)[None],
-                                    param)[0]
+        latent = self.method.deployed_context(torch.from_numpy(rows)[None],
+                                              torch.from_numpy(mask)[None], param)[0]
         return latent.numpy().astype(np.float32)
 
     def act(self, obs: np.ndarray, latent: np.ndarray) -> np.ndarray:

@@ -7,13 +7,17 @@ below; nothing else changes (trainer, checkpoint, evaluator, nodes).
 from __future__ import annotations
 
 from zeus_ros.core.methods.base import ContextMethod, Dims, ParamScale
+from zeus_ros.core.methods.cadm import CadmMethod
+from zeus_ros.core.methods.hyperdynamics import HyperDynamicsMethod
 from zeus_ros.core.methods.oracle import OracleMethod
 from zeus_ros.core.methods.sac import SacMethod
 from zeus_ros.core.methods.zeus import ZeusMethod, ZeusNoContextLoss
+from zeus_ros.core.methods.up_osi import UpOsiMethod
 from zeus_ros.core.methods.zeus_id import ZeusIdMethod
 
 METHODS: dict[str, type[ContextMethod]] = {
-    m.name: m for m in (ZeusMethod, ZeusNoContextLoss, SacMethod, OracleMethod, ZeusIdMethod)}
+    m.name: m for m in (ZeusMethod, ZeusNoContextLoss, SacMethod, OracleMethod, ZeusIdMethod,
+                        CadmMethod, UpOsiMethod, HyperDynamicsMethod)}
 
 
 def get_method(name: str) -> type[ContextMethod]:

@@ -96,6 +96,14 @@ class ContextMethod:
         """Latent context [B, context_dim] of windows rows [B, k, D], mask [B, k]."""
         return rows.new_zeros((rows.shape[0], 0))
 
+    def acting_context(self, rows, mask, param) -> torch.Tensor:
+        """Latent the trainer acts on while collecting (UP-OSI switches to its estimate)."""
+        return self.encode(rows, mask, param)
+
+    def deployed_context(self, rows, mask, param) -> torch.Tensor:
+        """Latent a deployed policy acts on (evaluation, the ROS nodes)."""
+        return self.encode(rows, mask, param)
+
     def encode_target(self, rows, mask, param) -> torch.Tensor:
         """Latent for the TD target (a slow copy where the critic trains the encoder)."""
         with torch.no_grad():

@@ -22,25 +22,9 @@ import torch
 import torch.nn.functional as F
 
 from zeus_ros.core.methods.base import ContextMethod, soft_update
+from zeus_ros.core.methods.common import gaussian_nll, safe_norm, w2_diag_gaussians
 from zeus_ros.core.networks import (ContextEncoder, GaussianModel, ParamDecoder, RewardModel,
                                     weight_init)
-
-
-def w2_diag_gaussians(mu1, log_std1, mu2, log_std2) -> torch.Tensor:
-    """2-Wasserstein distance between diagonal Gaussians (closed form), per row."""
-    sq = (mu1 - mu2).pow(2).sum(-1) + (log_std1.exp() - log_std2.exp()).pow(2).sum(-1)
-    return sq.sqrt()
-
-
-def safe_norm(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-    """L2 norm over the last axis with a finite gradient at 0."""
-    return (x.pow(2).sum(-1) + eps).sqrt()
-
-
-def gaussian_nll(mu, log_std, target) -> torch.Tensor:
-    """Mean over the batch of the diagonal-Gaussian negative log-likelihood (no constant)."""
-    diff = (target - mu) / log_std.exp()
-    return (0.5 * diff.pow(2) + log_std).sum(-1).mean()
 
 
 class ZeusMethod(ContextMethod):

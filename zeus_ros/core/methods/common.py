@@ -1,0 +1,184 @@
+"""Building blocks shared by the learned-encoder methods (zeus-id and the baselines).
+
+* `RunningStandardiser`: per-feature mean/std of what psi reads, learned from
+  the training batches and saved with the weights, so a deployed psi sees the
+  same standardised inputs.
+* `StandardisedContextEncoder`: standardise each window row (optionally as
+  concat(s, a, r, s' - s)), encode it, pool the valid rows.
+* `EncoderMethod`: psi + the method's own models trained by one optimiser on
+  the method's loss, and a decoder probe on the DETACHED latent. Subclasses
+  write `build_models` and `model_loss`; whether the critic's TD error also
+  trains psi is the config's `context_critic_grad`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+from zeus_ros.core.methods.base import ContextMethod
+from zeus_ros.core.networks import ContextEncoder, ParamDecoder, weight_init
+
+
+def safe_norm(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """L2 norm over the last axis with a finite gradient at 0."""
+    return (x.pow(2).sum(-1) + eps).sqrt()
+
+
+def w2_diag_gaussians(mu1, log_std1, mu2, log_std2) -> torch.Tensor:
+    """2-Wasserstein distance between diagonal Gaussians (closed form), per row."""
+    sq = (mu1 - mu2).pow(2).sum(-1) + (log_std1.exp() - log_std2.exp()).pow(2).sum(-1)
+    return sq.sqrt()
+
+
+def gaussian_nll(mu, log_std, target) -> torch.Tensor:
+    """Mean over the batch of the diagonal-Gaussian negative log-likelihood (no constant)."""
+    diff = (target - mu) / log_std.exp()
+    return (0.5 * diff.pow(2) + log_std).sum(-1).mean()
+
+
+class RunningStandardiser(nn.Module):
+    """Per-feature mean / std from every batch seen in training (buffers, saved with psi)."""
+
+    def __init__(self, dim: int, min_momentum: float = 1e-3):
+        super().__init__()
+        self.register_buffer('mean', torch.zeros(dim))
+        self.register_buffer('var', torch.ones(dim))
+        self.register_buffer('count', torch.zeros(()))
+        self.min_momentum = min_momentum
+
+    @torch.no_grad()
+    def observe(self, x: torch.Tensor) -> None:
+        """Fold a batch [N, dim] into the statistics (a cumulative mean, then an EMA)."""
+        self.count += 1
+        m = max(1.0 / float(self.count), self.min_momentum)
+        self.mean.lerp_(x.mean(0), m)
+        self.var.lerp_(x.var(0, unbiased=False), m)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean) / (self.var.sqrt() + 1e-4)
+
+
+def transition_features(rows: torch.Tensor, obs_dim: int, delta: bool) -> torch.Tensor:
+    """Window rows concat(s, a, r, s') -> concat(s, a, r, s' - s) when `delta`."""
+    if not delta:
+        return rows
+    s, s_next = rows[..., :obs_dim], rows[..., -obs_dim:]
+    return torch.cat([rows[..., :-obs_dim], s_next - s], dim=-1)
+
+
+class StandardisedContextEncoder(nn.Module):
+    """psi: standardised transition features -> per-row codes -> pooled over valid rows."""
+
+    def __init__(self, obs_dim: int, row_dim: int, cfg, out_dim: int | None = None):
+        super().__init__()
+        self.obs_dim = obs_dim
+        self.delta = cfg.context_input == 'delta'
+        self.norm = RunningStandardiser(row_dim)
+        self.encoder = ContextEncoder(row_dim, out_dim or cfg.context_dim, cfg.context_hidden,
+                                      cfg.context_layers, cfg.aggregation)
+
+    def features(self, rows: torch.Tensor) -> torch.Tensor:
+        """Return what psi reads of each row, before standardising."""
+        return transition_features(rows, self.obs_dim, self.delta)
+
+    def codes(self, rows: torch.Tensor) -> torch.Tensor:
+        """Per-row codes of raw window rows."""
+        return self.encoder.codes(self.norm(self.features(rows)))
+
+    def forward(self, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return self.encoder.pool(self.codes(rows), mask)
+
+
+class EncoderMethod(ContextMethod):
+    """psi over the window, the method's models, one optimiser on its loss, a decoder probe."""
+
+    has_decoder = True
+
+    def __init__(self, cfg, dims, param, training=True):
+        super().__init__(cfg, dims, param, training)
+        self.psi = StandardisedContextEncoder(dims.obs_dim, dims.row_dim, cfg,
+                                              self.encoder_dim)
+        self.decoder = ParamDecoder(cfg.context_dim, cfg.decoder_hidden) \
+            if self.has_decoder else None
+        if not training:
+            return
+        self.models = self.build_models()
+        for m in (self.psi, *self.models.values(), *([self.decoder] if self.decoder else [])):
+            m.apply(weight_init)
+        self.model_opt = torch.optim.Adam(
+            [*self.psi.parameters(), *(p for m in self.models.values() for p in m.parameters())],
+            lr=cfg.model_lr)
+        if self.decoder is not None:
+            self.decoder_opt = torch.optim.Adam(self.decoder.parameters(), lr=cfg.decoder_lr)
+
+    # -- what subclasses write ---------------------------------------------------
+    def build_models(self) -> dict[str, nn.Module]:
+        """Build the method's training-only networks, by checkpoint prefix."""
+        return {}
+
+    def model_loss(self, b):
+        """Return (loss, latent of the batch's windows, metrics) of the method's objective."""
+        raise NotImplementedError
+
+    # -- the plug-in interface -------------------------------------------------
+    @property
+    def encoder_dim(self) -> int:
+        """Width of psi's output."""
+        return self.cfg.context_dim
+
+    @property
+    def critic_trains_context(self) -> bool:
+        return self.cfg.context_critic_grad
+
+    @property
+    def context_dim(self) -> int:
+        return self.encoder_dim
+
+    def inference_modules(self):
+        return {'psi': self.psi, **({'decoder': self.decoder} if self.decoder else {})}
+
+    def training_modules(self):
+        return dict(self.models)
+
+    def optimizers(self):
+        opts = {'model_opt': self.model_opt}
+        if self.decoder is not None:
+            opts['decoder_opt'] = self.decoder_opt
+        return opts
+
+    def encoder_parameters(self):
+        return list(self.psi.parameters())
+
+    def encode(self, rows, mask, param):
+        return self.psi(rows, mask)
+
+    def decode(self, latent):
+        return self.decoder(latent)
+
+    def standardised_step(self, b):
+        """Standardised s and s' - s of the batch's own transitions (no gradient)."""
+        o = self.dims.obs_dim
+        row = torch.cat([b.obs, b.action, b.reward[:, None], b.next_obs], dim=-1)
+        feats = self.psi.norm(self.psi.features(row))
+        if self.psi.delta:
+            return feats[:, :o], feats[:, -o:]
+        delta = b.next_obs - b.obs   # raw-row ablation: scale the delta by its batch std
+        return feats[:, :o], delta / (delta.std(0) + 1e-4)
+
+    def update(self, batch, z, step):
+        valid_rows = batch.ctx_rows[batch.ctx_mask]
+        if valid_rows.shape[0] > 1:
+            self.psi.norm.observe(self.psi.features(valid_rows))
+        loss, c, metrics = self.model_loss(batch)
+        self.model_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.model_opt.step()
+        if self.decoder is not None:
+            dec = F.mse_loss(self.decoder(c.detach()), self.param.normalise(batch.param))
+            self.decoder_opt.zero_grad(set_to_none=True)
+            dec.backward()
+            self.decoder_opt.step()
+            metrics['decoder_loss'] = dec.detach()
+        return metrics

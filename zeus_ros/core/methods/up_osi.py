@@ -1,0 +1,66 @@
+"""`up-osi`: Universal Policy + Online System Identification (Yu et al. 2017), appendix B.2.1.
+
+* UP: actor and critic see the TRUE parameter, min-max normalised (as the
+  oracle) in every training update.
+* OSI: psi over the last k transitions (s, a, r, s') regressing the
+  normalised parameter (MSE), trained on the replay's windows; no policy
+  gradient reaches it.
+* Collection: the first ``osi_warmup_updates`` updates act on the true
+  parameter, later ones on OSI's estimate (the paper's 3-5 of 500 iterations,
+  scaled to the number of updates), so OSI also learns on the states the
+  policy visits when it acts on its own estimates.
+* Deployment ("UP-inferred"): the latent is OSI's estimate, which is also the
+  decoded parameter; a deployed UP-OSI needs no true parameter.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from zeus_ros.core.methods.common import EncoderMethod
+
+
+class UpOsiMethod(EncoderMethod):
+    """Context = true parameter in training, OSI's estimate when acting on its own."""
+
+    name = 'up-osi'
+    has_decoder = False
+    config_defaults = {'context_input': 'delta', 'context_critic_grad': False}
+
+    def __init__(self, cfg, dims, param, training=True):
+        super().__init__(cfg, dims, param, training)
+        self.updates = 0
+
+    @property
+    def encoder_dim(self) -> int:
+        return 1
+
+    @property
+    def critic_trains_context(self) -> bool:
+        return False
+
+    def encode(self, rows, mask, param):
+        if param is None:
+            raise ValueError('UP is trained on the true parameter: pass it')
+        return self.param.normalise(torch.as_tensor(param, dtype=torch.float32).reshape(-1, 1))
+
+    def acting_context(self, rows, mask, param):
+        if param is not None and self.updates < self.cfg.osi_warmup_updates:
+            return self.encode(rows, mask, param)
+        return self.psi(rows, mask)
+
+    def deployed_context(self, rows, mask, param):
+        return self.psi(rows, mask)
+
+    def decode(self, latent):
+        return latent[..., 0]
+
+    def model_loss(self, b):
+        estimate = self.psi(b.ctx_rows, b.ctx_mask)
+        loss = F.mse_loss(estimate[:, 0], self.param.normalise(b.param))
+        return loss, estimate, {'osi_loss': loss.detach()}
+
+    def update(self, batch, z, step):
+        self.updates += 1
+        return super().update(batch, z, step)

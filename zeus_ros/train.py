@@ -326,6 +326,7 @@ class Trainer:
         """Train until `steps` timesteps (or the time limit); checkpoint on any exit."""
         args = self.args
         self.started = time.monotonic()
+        start_env_steps = self.env_steps
         self.logs.restart_rate(self)
         bar = tqdm(total=args.steps, initial=min(self.timestep, args.steps),
                    disable=args.quiet, unit='ts', dynamic_ncols=True)
@@ -342,6 +343,7 @@ class Trainer:
             self.checkpoint()
             self.logs.close()
         return {'timestep': self.timestep, 'env_steps': self.env_steps,
+                'session_env_steps': self.env_steps - start_env_steps,
                 'elapsed_s': time.monotonic() - self.started, 'wall_s': self.wall_s()}
 
 
@@ -427,7 +429,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt as stop:
         print(f'interrupted ({stop}); checkpoint saved at timestep {trainer.timestep}')
         return 130
-    rate = result['env_steps'] / max(result['elapsed_s'], 1e-9)
+    rate = result['session_env_steps'] / max(result['elapsed_s'], 1e-9)
     print(f'done: timestep {result["timestep"]}, env steps {result["env_steps"]}, '
           f'{result["elapsed_s"]:.0f} s this session ({rate:.0f} env steps/s), '
           f'{result["wall_s"]:.0f} s in all; checkpoint in {args.out / "checkpoint"}')

@@ -32,6 +32,7 @@ setup(
             'train = zeus_ros.train:main',
             'eval = zeus_ros.evaluate:main',
             'adaptation_report = zeus_ros.adaptation:main',
+            'sweep = zeus_ros.sweep:main',
         ],
     },
 )

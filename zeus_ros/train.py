@@ -217,6 +217,7 @@ class Trainer:
         self.ep_returns = np.zeros(len(self.envs))
         self.last_returns = np.full(len(self.envs), np.nan)
         self.logs = TrainingLogs(self.out)
+        self.on_checkpoint = None   # called with the trainer after every checkpoint (sweeps)
 
     def _resume(self) -> dict:
         resumed = load_training_checkpoint(self.out / 'checkpoint', self.agent, self.replay)
@@ -246,6 +247,8 @@ class Trainer:
         save_checkpoint(self.out / 'checkpoint', self.agent, env_info(self.envs[0]), counters,
                         rngs, self.replay if self.args.save_replay else None,
                         run=self.args.to_json_dict(), wall_s=self.wall_s())
+        if self.on_checkpoint is not None:
+            self.on_checkpoint(self)
 
     def collect(self) -> None:
         """One timestep: every training task steps once; transitions go to the replay."""

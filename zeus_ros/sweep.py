@@ -1,0 +1,193 @@
+"""Sweeps of training runs (methods x families x seeds) on Ray Tune, resumable.
+
+    python -m zeus_ros.sweep run config/sweeps/slippery.yaml          # local Ray
+    python -m zeus_ros.sweep run config/sweeps/slippery.yaml --resume # after a kill
+    python -m zeus_ros.sweep run SWEEP.yaml --address ray://head:10001 # a Ray cluster
+    python -m zeus_ros.sweep table config/sweeps/slippery.yaml         # table + plots
+
+One Tune trial is one training run (`zeus_ros.train.Trainer`), one CPU and one
+torch thread each, at most `max_concurrent` (default: the machine's cores) at
+once. Every trial trains in its own run directory under
+``<storage>/<name>/runs/<family>.<method>.s<seed>`` and checkpoints there
+every ``checkpoint_every`` timesteps; a trial that starts again (a restored
+sweep, or Tune retrying a failure) resumes from that checkpoint, so a killed
+sweep loses at most one checkpoint interval per trial. `table` gathers the
+final evaluation of every run into ``comparison.csv`` / ``comparison.md``
+(mean +- standard error over seeds, per split) and draws learning curves.
+
+The sweep file (YAML):
+
+    name: slippery                # the experiment's folder under storage
+    storage: runs/sweeps          # relative to the current directory
+    families: [walker-walk-slippery]
+    methods: [sac, oracle, zeus-id]
+    seeds: [1, 2, 3]
+    steps: 60000                  # timesteps per run (the fixed budget)
+    max_concurrent: 2
+    train: {eval_every: 10000, checkpoint_every: 2500, log_every: 1000}
+    overrides: {}                 # ZeusConfig fields for every run (as --set)
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field, fields
+import os
+from pathlib import Path
+import sys
+
+import yaml
+
+from sim_node.families import FAMILIES
+from zeus_ros.core.methods import METHODS
+
+TRAIN_KEYS = ('eval_every', 'eval_episodes', 'eval_max_steps', 'checkpoint_every',
+              'log_every', 'profile')
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """A grid of training runs and where they live."""
+
+    name: str
+    families: tuple[str, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    steps: int
+    storage: str = 'runs/sweeps'
+    max_concurrent: int = field(default_factory=lambda: os.cpu_count() or 1)
+    train: dict = field(default_factory=dict)
+    overrides: dict = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, path) -> 'SweepConfig':
+        """Read and check a sweep file; ValueError says what is wrong."""
+        raw = yaml.safe_load(Path(path).read_text()) or {}
+        unknown = set(raw) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f'unknown sweep keys {sorted(unknown)}')
+        for key in ('families', 'methods', 'seeds'):
+            raw[key] = tuple(raw.get(key, ()))
+        cfg = cls(**raw)
+        bad = [f for f in cfg.families if f not in FAMILIES] + \
+            [m for m in cfg.methods if m not in METHODS]
+        if bad or not (cfg.families and cfg.methods and cfg.seeds):
+            raise ValueError(f'unknown or missing families/methods/seeds: {bad}')
+        if set(cfg.train) - set(TRAIN_KEYS):
+            raise ValueError(f'train: keys must be among {TRAIN_KEYS}')
+        return cfg
+
+    @property
+    def root(self) -> Path:
+        """The experiment folder (Tune's state and the run directories)."""
+        return Path(self.storage).resolve() / self.name
+
+    def trials(self) -> list[dict]:
+        """One parameter dict per run, in the order families, methods, seeds."""
+        return [{'family': f, 'method': m, 'seed': s}
+                for f in self.families for m in self.methods for s in self.seeds]
+
+
+def run_dir(cfg: SweepConfig, family: str, method: str, seed: int) -> Path:
+    """Where one run trains and checkpoints (stable across restores)."""
+    return cfg.root / 'runs' / f'{family}.{method}.s{seed}'
+
+
+def train_trial(params: dict) -> None:
+    """Tune trainable: one training run, resumed from its own checkpoint when it has one."""
+    import torch
+    from ray import tune
+
+    from zeus_ros.train import RunArgs, Trainer
+    cfg = SweepConfig(**params['sweep'])
+    out = run_dir(cfg, params['family'], params['method'], params['seed'])
+    overrides = dict(cfg.overrides, num_threads=1)
+    torch.set_num_threads(1)
+    args = RunArgs(out=out, family=params['family'], method=params['method'],
+                   seed=params['seed'], steps=cfg.steps, overrides=overrides,
+                   resume=(out / 'checkpoint' / 'metadata.json').exists(), quiet=True,
+                   **cfg.train)
+    trainer = Trainer(args)
+    trainer.on_checkpoint = lambda tr: tune.report(
+        {'timestep': tr.timestep, 'env_steps': tr.env_steps, 'wall_s': tr.wall_s()})
+    trainer.run()
+
+
+def sweep_trial(params: dict) -> None:
+    """Tune's entry point: the grid point's run and the sweep it belongs to."""
+    train_trial({**params['trial'], 'sweep': params['sweep']})
+
+
+def make_tuner(cfg: SweepConfig, resume: bool):
+    """Build a new Tuner over the grid, or restore the interrupted one from `cfg.root`."""
+    from ray import tune
+    trainable = tune.with_resources(sweep_trial, {'cpu': 1})
+    path = cfg.root / 'tune'
+    if resume and tune.Tuner.can_restore(str(path)):
+        return tune.Tuner.restore(str(path), trainable, resume_unfinished=True,
+                                  resume_errored=True)
+    sweep = {f.name: getattr(cfg, f.name) for f in fields(cfg)}
+    return tune.Tuner(
+        trainable, param_space={'sweep': sweep, 'trial': tune.grid_search(cfg.trials())},
+        tune_config=tune.TuneConfig(max_concurrent_trials=cfg.max_concurrent),
+        run_config=tune.RunConfig(name='tune', storage_path=str(cfg.root),
+                                  failure_config=tune.FailureConfig(max_failures=2),
+                                  verbose=1))
+
+
+def start_ray(cfg: SweepConfig, address: str | None) -> None:
+    """Local Ray on this machine (loopback, one CPU per trial), or join a cluster."""
+    import ray
+    os.environ.setdefault('RAY_USAGE_STATS_ENABLED', '0')
+    repo = str(Path(__file__).resolve().parents[1])
+    os.environ['PYTHONPATH'] = os.pathsep.join(
+        p for p in (repo, os.environ.get('PYTHONPATH')) if p)
+    if address:
+        ray.init(address=address, runtime_env={'env_vars': {'OMP_NUM_THREADS': '1'}})
+        return
+    ray.init(num_cpus=cfg.max_concurrent, include_dashboard=False,
+             _node_ip_address='127.0.0.1', log_to_driver=False,
+             runtime_env={'env_vars': {'OMP_NUM_THREADS': '1', 'PYTHONPATH': repo}})
+
+
+def run_sweep(cfg: SweepConfig, resume: bool, address: str | None) -> int:
+    """Train every grid point (resuming what was interrupted); 0 if all finished."""
+    import ray
+    start_ray(cfg, address)
+    try:
+        results = make_tuner(cfg, resume).fit()
+    finally:
+        ray.shutdown()
+    errors = [r.error for r in results if r.error is not None]
+    for error in errors:
+        print(f'trial failed: {error}', file=sys.stderr)
+    return 1 if errors else 0
+
+
+def main(argv=None) -> int:
+    """Console entry point (`sweep`)."""
+    p = argparse.ArgumentParser(prog='sweep', description=__doc__.split('\n')[0])
+    sub = p.add_subparsers(dest='command', required=True)
+    run = sub.add_parser('run', help='train the grid (Ray Tune)')
+    run.add_argument('config', type=Path)
+    run.add_argument('--resume', action='store_true', help='restore an interrupted sweep')
+    run.add_argument('--address', default=None, help='an existing Ray cluster (ray://...)')
+    table = sub.add_parser('table', help='gather results into a table and plots')
+    table.add_argument('config', type=Path)
+    table.add_argument('--report', action='store_true',
+                       help='also run the adaptation report on every run (slow)')
+    args = p.parse_args(argv)
+    try:
+        cfg = SweepConfig.load(args.config)
+    except (OSError, ValueError, TypeError, yaml.YAMLError) as error:
+        print(f'bad sweep file {args.config}: {error}', file=sys.stderr)
+        return 2
+    if args.command == 'run':
+        return run_sweep(cfg, args.resume, args.address)
+    from zeus_ros.sweep_results import write_results
+    print(write_results(cfg, with_report=args.report))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,189 @@
+"""Gather a sweep's runs into one comparison table and learning-curve plots.
+
+Reads every run directory of a sweep (`zeus_ros.sweep.run_dir`): its
+``eval_log.csv`` (the trainer's periodic evaluation: deterministic episodes
+on fixed start states, one row per split and value) and, with
+``with_report``, the adaptation report of its final checkpoint. Writes into
+the sweep folder:
+
+* ``comparison.csv``: one row per family, method and split: mean +- standard
+  error over seeds of the final evaluation's mean return over the split's
+  values, the number of seeds, and the timestep evaluated;
+* ``comparison.md``: the same as Markdown tables, one per family, plus the
+  report's figures (R^2 of the decoded estimate, largest return gap when the
+  context is perturbed) where they were computed;
+* ``curves_<family>.png``: return against environment steps per split, one
+  line per method (mean over seeds, shaded standard error), as the paper's
+  Figure 2 (extrapolation) and Figures 7-8 (train, interpolation).
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+import json
+from pathlib import Path
+
+import numpy as np
+
+from zeus_ros.sweep import run_dir, SweepConfig
+
+SPLIT_ORDER = ('train', 'interpolation', 'extrapolation')
+
+
+@dataclass(frozen=True)
+class Curve:
+    """Mean evaluation return per split at each evaluated timestep of one run."""
+
+    env_steps: tuple[int, ...]
+    timesteps: tuple[int, ...]
+    returns: dict[str, tuple[float, ...]]
+
+
+def read_curve(path: Path) -> Curve | None:
+    """Read the run's evaluation curve from eval_log.csv (None before any evaluation)."""
+    if not path.exists():
+        return None
+    by_step: dict[int, dict] = {}
+    for row in csv.DictReader(open(path)):
+        entry = by_step.setdefault(int(row['timestep']), {'env': int(row['env_steps'])})
+        entry.setdefault(row['split'], []).append(float(row['return']))
+    if not by_step:
+        return None
+    steps = sorted(by_step)
+    splits = [s for s in SPLIT_ORDER if all(s in by_step[t] for t in steps)]
+    return Curve(tuple(by_step[t]['env'] for t in steps), tuple(steps),
+                 {s: tuple(float(np.mean(by_step[t][s])) for t in steps) for s in splits})
+
+
+def mean_sem(values) -> tuple[float, float]:
+    """Mean and standard error of the mean (0 for a single value)."""
+    v = np.asarray(values, float)
+    sem = float(v.std(ddof=1) / np.sqrt(v.size)) if v.size > 1 else 0.0
+    return float(v.mean()), sem
+
+
+def gather(cfg: SweepConfig) -> dict:
+    """{(family, method): {seed: Curve}} for every run that has evaluated."""
+    out = {}
+    for family in cfg.families:
+        for method in cfg.methods:
+            curves = {s: read_curve(run_dir(cfg, family, method, s) / 'eval_log.csv')
+                      for s in cfg.seeds}
+            out[(family, method)] = {s: c for s, c in curves.items() if c is not None}
+    return out
+
+
+def table_rows(curves: dict) -> list[dict]:
+    """Final-evaluation rows: family, method, split, mean, sem, seeds, timestep."""
+    rows = []
+    for (family, method), runs in curves.items():
+        if not runs:
+            continue
+        for split in SPLIT_ORDER:
+            finals = [c.returns[split][-1] for c in runs.values() if split in c.returns]
+            if finals:
+                mean, sem = mean_sem(finals)
+                rows.append({'family': family, 'method': method, 'split': split,
+                             'mean': round(mean, 1), 'sem': round(sem, 1),
+                             'seeds': len(finals),
+                             'timestep': min(c.timesteps[-1] for c in runs.values())})
+    return rows
+
+
+def adaptation_figures(cfg: SweepConfig) -> dict:
+    """{(family, method): (R^2 mean, sem, largest context gap mean, sem)} from the reports."""
+    from zeus_ros.adaptation import build_report, ReportConfig
+    out = {}
+    for family in cfg.families:
+        for method in cfg.methods:
+            r2, gap = [], []
+            for seed in cfg.seeds:
+                ckpt = run_dir(cfg, family, method, seed) / 'checkpoint'
+                if not (ckpt / 'metadata.json').exists():
+                    continue
+                report = build_report(str(ckpt), ReportConfig(episodes=1))
+                (ckpt.parent / 'adaptation.json').write_text(report.to_json())
+                if report.identification is not None:
+                    r2.append(report.identification.r2_per_step)
+                    gap.append(report.context_use.largest_gap)
+            if r2:
+                out[(family, method)] = (*mean_sem(r2), *mean_sem(gap))
+    return out
+
+
+def markdown(rows: list[dict], figures: dict) -> str:
+    """One table per family: methods x splits, then the report's figures."""
+    lines = []
+    for family in dict.fromkeys(r['family'] for r in rows):
+        lines += [f'## {family}', '', '| method | ' + ' | '.join(SPLIT_ORDER) +
+                  ' | seeds | timestep | R^2 decoded | largest context gap |',
+                  '|---' * (len(SPLIT_ORDER) + 5) + '|']
+        for method in dict.fromkeys(r['method'] for r in rows if r['family'] == family):
+            cells = {r['split']: r for r in rows
+                     if r['family'] == family and r['method'] == method}
+            first = next(iter(cells.values()))
+            fig = figures.get((family, method))
+            extra = (f'{fig[0]:.2f} +- {fig[1]:.2f} | {fig[2]:.0f} +- {fig[3]:.0f}'
+                     if fig else '- | -')
+            lines.append(f'| {method} | ' + ' | '.join(
+                f'{cells[s]["mean"]:.0f} +- {cells[s]["sem"]:.0f}' if s in cells else '-'
+                for s in SPLIT_ORDER) + f' | {first["seeds"]} | {first["timestep"]} | {extra} |')
+        lines.append('')
+    return '\n'.join(lines)
+
+
+def plot_curves(cfg: SweepConfig, curves: dict) -> list[Path]:
+    """Return-vs-steps figures per family (mean over seeds, shaded standard error)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    paths = []
+    for family in cfg.families:
+        fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), sharey=True)
+        for ax, split in zip(axes, SPLIT_ORDER, strict=True):
+            for method in cfg.methods:
+                _plot_method(ax, curves.get((family, method), {}), split, method)
+            ax.set_title(f'{family}: {split}')
+            ax.set_xlabel('environment steps')
+        axes[0].set_ylabel('evaluation return')
+        axes[-1].legend(fontsize=8)
+        path = cfg.root / f'curves_{family}.png'
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def _plot_method(ax, runs: dict, split: str, method: str) -> None:
+    usable = [c for c in runs.values() if split in c.returns]
+    if not usable:
+        return
+    n = min(len(c.env_steps) for c in usable)
+    x = np.asarray(usable[0].env_steps[:n])
+    ys = np.asarray([c.returns[split][:n] for c in usable])
+    mean = ys.mean(0)
+    sem = ys.std(0, ddof=1) / np.sqrt(len(ys)) if len(ys) > 1 else np.zeros(n)
+    ax.plot(x, mean, label=f'{method} ({len(ys)} seeds)')
+    ax.fill_between(x, mean - sem, mean + sem, alpha=0.2)
+
+
+def write_results(cfg: SweepConfig, with_report: bool = False) -> str:
+    """Write comparison.csv / .md and the curves; return the Markdown."""
+    curves = gather(cfg)
+    rows = table_rows(curves)
+    cfg.root.mkdir(parents=True, exist_ok=True)
+    with open(cfg.root / 'comparison.csv', 'w', newline='') as f:
+        writer = csv.DictWriter(f, ('family', 'method', 'split', 'mean', 'sem', 'seeds',
+                                    'timestep'))
+        writer.writeheader()
+        writer.writerows(rows)
+    figures = adaptation_figures(cfg) if with_report else {}
+    text = markdown(rows, figures)
+    (cfg.root / 'comparison.md').write_text(text)
+    (cfg.root / 'comparison.json').write_text(json.dumps(
+        {'rows': rows, 'adaptation': {f'{k[0]}.{k[1]}': v for k, v in figures.items()}},
+        indent=2))
+    plot_curves(cfg, curves)
+    return text

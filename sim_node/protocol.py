@@ -1,14 +1,22 @@
-"""ROS-free pieces of the sim node's protocol: stamps and command checking."""
+"""ROS-free pieces of the sim node's protocol: stamps, commands, resets, loop health."""
 
 from __future__ import annotations
 
+from collections import deque
+import math
 from typing import Sequence
 
 import numpy as np
 
 from sim_node.env import check_action
+from sim_node.families import FamilySpec
 
 NANOSECONDS = 1_000_000_000
+# Reset.seed: -1 keeps the random stream of initial states; 0 <= seed < 2**32
+# restarts it there (numpy's RandomState takes no other seed). Reset.srv gives
+# the field no default, so an empty request carries 0.
+KEEP_STREAM = -1
+SEED_MAX = 2**32 - 1
 
 
 def stamp_to_ns(sec: int, nanosec: int) -> int:
@@ -36,3 +44,80 @@ def parse_command(names: Sequence[str], efforts: Sequence[float],
         return None, f'{len(efforts)} efforts for {len(names)} names'
     order = [names.index(a) for a in actuator_names]
     return check_action(np.asarray(efforts, dtype=np.float64)[order], len(actuator_names))
+
+
+def check_seed(seed: int) -> str | None:
+    """Return why a Reset.seed is refused, or None."""
+    if seed == KEEP_STREAM or 0 <= seed <= SEED_MAX:
+        return None
+    return (f'seed must be {KEEP_STREAM} (keep the current stream) or in [0, {SEED_MAX}], '
+            f'got {seed}')
+
+
+def check_reset_request(seed: int, names: Sequence[str], values: Sequence[float],
+                        spec: FamilySpec) -> str | None:
+    """Return why a reset request is refused, or None.
+
+    A valid seed (check_seed); one value per name; each name the family's
+    parameter, at most once (two values for one name leave nothing to choose
+    between), each value in its live range.
+    """
+    names, values = list(names), list(values)
+    problem = check_seed(seed)
+    if problem is not None:
+        return problem
+    if len(names) != len(values):
+        return f'{len(names)} parameter names but {len(values)} values'
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        return f'parameter {", ".join(repeated)} given more than once'
+    for name, value in zip(names, values, strict=True):
+        if name != spec.param_name:
+            return f'unknown parameter {name!r}; {spec.name} has {spec.param_name!r}'
+        reason = spec.check_value(value)
+        if reason is not None:
+            return reason
+    return None
+
+
+class RecentRises:
+    """How much each counter rose over the last `window_s` seconds.
+
+    Diagnostic levels read this, not the totals since start, so that one bad
+    command at start-up does not keep the sim at WARN for ever. Fed once per
+    report (1 Hz) with the totals.
+    """
+
+    def __init__(self, window_s: float = 10.0):
+        self.window_s = window_s
+        # (time, totals); the first entry is the baseline the rises are taken from.
+        self._snapshots: deque[tuple[float, dict]] = deque([(-math.inf, {})])
+
+    def rises(self, now: float, totals: dict) -> dict:
+        """Rise of each counter in (now - window_s, now], given its total now."""
+        self._snapshots.append((now, dict(totals)))
+        while len(self._snapshots) > 1 and self._snapshots[1][0] <= now - self.window_s:
+            self._snapshots.popleft()
+        base = self._snapshots[0][1]
+        return {key: value - base.get(key, 0) for key, value in totals.items()}
+
+
+def loop_problem(recent: dict, window_s: float) -> str | None:
+    """Return what is wrong with the sim's loop over the recent window, or None.
+
+    `recent` holds the rises of: steps, answered (steps whose command answered
+    the state before them), timeouts, rejected, instabilities, late_ticks.
+    Nobody answering at all is a problem even though every count of errors is
+    zero: the robot runs on zero actions (or, in lockstep, waits).
+    """
+    problems = []
+    if recent['answered'] == 0:
+        problems.append(f'no controller: none of {recent["steps"]} steps answered by a command')
+    elif recent['timeouts']:
+        problems.append(f'{recent["timeouts"]} command timeouts')
+    for key, text in (('rejected', 'bad commands rejected'),
+                      ('instabilities', 'MuJoCo instabilities'),
+                      ('late_ticks', 'ticks more than a period late')):
+        if recent[key]:
+            problems.append(f'{recent[key]} {text}')
+    return f'{"; ".join(problems)} in the last {window_s:g} s' if problems else None

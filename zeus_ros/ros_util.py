@@ -1,18 +1,25 @@
-"""Small pieces every zeus_ros node shares: QoS, stamps, diagnostics, throttled warnings."""
+"""Small pieces every zeus_ros node shares: QoS, stamps, diagnostics, parameters, shutdown."""
 
 from __future__ import annotations
 
 import gc
 import os
+import re
+import signal
 import sys
+import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.logging import get_logger_level, LoggingSeverity, set_logger_level
+from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sim_node.protocol import ns_to_stamp, stamp_to_ns
 from zeus_ros.loop_spin import spin_loop
 
@@ -39,19 +46,30 @@ def describe(text: str, read_only: bool = False, **ranges) -> ParameterDescripto
     return ParameterDescriptor(description=text, read_only=read_only, **ranges)
 
 
+def declare_thread_priority(node) -> int:
+    """Declare `thread_priority` once and return it; a value outside [0, 99] raises.
+
+    A node declares it among its own parameters, so that a bad value ends it
+    before it logs or starts anything; run_node declares it for the others.
+    """
+    if not node.has_parameter('thread_priority'):
+        node.declare_parameter('thread_priority', 0, describe(
+            "SCHED_FIFO priority (1-99) of the node's loop thread; 0 keeps the normal "
+            'scheduler. Needs root, CAP_SYS_NICE or an rtprio limit; if refused, the node '
+            'warns and runs on (read-only).', read_only=True,
+            integer_range=[IntegerRange(from_value=0, to_value=99, step=1)]))
+    return node.get_parameter('thread_priority').value
+
+
 def apply_thread_priority(node) -> int:
-    """Declare `thread_priority`; run the calling thread under SCHED_FIFO at it if > 0.
+    """Run the calling thread under SCHED_FIFO at `thread_priority` if it is > 0.
 
     The convention of ros2_control's controller_manager: a node that must meet a
     period asks for a real-time priority and, if the system refuses it, warns
     and runs on under the normal scheduler. Returns the priority in force.
     Threads started afterwards (spin_loop's executor thread) inherit it.
     """
-    priority = node.declare_parameter('thread_priority', 0, describe(
-        "SCHED_FIFO priority (1-99) of the node's loop thread; 0 keeps the normal "
-        'scheduler. Needs root, CAP_SYS_NICE or an rtprio limit; if refused, the node '
-        'warns and runs on (read-only).', read_only=True,
-        integer_range=[IntegerRange(from_value=0, to_value=99, step=1)])).value
+    priority = declare_thread_priority(node)
     if priority == 0:
         return 0
     try:
@@ -62,6 +80,72 @@ def apply_thread_priority(node) -> int:
         return 0
     node.get_logger().info(f'loop thread runs under SCHED_FIFO, priority {priority}')
     return priority
+
+
+class UnknownParameters(ValueError):
+    """Parameters given at start (-p, a params file) that the node does not have."""
+
+
+def _overrides(node) -> dict:
+    # The values given at start, as rclpy 7.1.6 (requirements.lock) keeps them:
+    # there is no public accessor.
+    return node._parameter_overrides
+
+
+def parameter_names(node) -> list[str]:
+    """Return the node's declared parameters, in declaration order."""
+    return list(node.list_parameters([], 0).names)
+
+
+def unknown_overrides(node) -> list[str]:
+    """Names given at start that the node never declared.
+
+    rclpy ignores such an override without a word (-p friction:=0.5 on a
+    walker-walk-v1 sim ran on at the default foot length). Call it after the
+    node's last declaration.
+    """
+    return sorted(name for name in _overrides(node) if not node.has_parameter(name))
+
+
+def refuse_unknown_overrides(node) -> None:
+    """Raise UnknownParameters, naming the node's parameters, for an unknown override."""
+    unknown = unknown_overrides(node)
+    if unknown:
+        raise UnknownParameters(f'unknown parameter {", ".join(unknown)}; '
+                                f'{node.get_name()} has {", ".join(parameter_names(node))}')
+
+
+def declare_double(node, name: str, default: float, descriptor: ParameterDescriptor) -> float:
+    """Declare a double parameter that also takes an integer at start (-p friction:=1)."""
+    override = _overrides(node).get(name)
+    if override is not None and override.type_ == Parameter.Type.INTEGER:
+        return node.declare_parameter(name, float(override.value), descriptor,
+                                      ignore_override=True).value
+    return node.declare_parameter(name, float(default), descriptor).value
+
+
+def accept_integers_for_doubles(node) -> None:
+    """Let an integer set a double parameter (`ros2 param set /sim_node friction 1`).
+
+    rclpy refuses it ('expected Type.DOUBLE got Type.INTEGER'), yet people type 1
+    for 1.0. A pre-set callback turns it into that double before the type and
+    range checks, so the parameter keeps its type and range. Idempotent (rclpy
+    would run a second such callback and set each parameter twice).
+    """
+    if getattr(node, '_integers_as_doubles', False):
+        return
+    node._integers_as_doubles = True
+
+    def as_doubles(params: list[Parameter]) -> list[Parameter]:
+        return [Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+                if p.type_ == Parameter.Type.INTEGER and _is_double(node, p.name) else p
+                for p in params]
+    node.add_pre_set_parameters_callback(as_doubles)
+
+
+def _is_double(node, name: str) -> bool:
+    return (node.has_parameter(name)
+            and node.describe_parameter(name).type == ParameterType.PARAMETER_DOUBLE)
 
 
 def call_service(client, request, wait, timeout: float = 30.0, attempt_s: float = 3.0):
@@ -181,38 +265,159 @@ class TickLateness:
                 'unanswered_ticks': self.unanswered}
 
 
-def run_node(node_class, args=None, fatal: tuple = ()) -> int:
-    """Spin one node with `spin_loop` until Ctrl-C or shutdown.
+class StopRequested(BaseException):
+    """The first SIGINT or SIGTERM, raised in the main thread while a node starts.
 
-    A `fatal` error, or a parameter given on the command line that its
-    declaration refuses (out of range, wrong type), ends it with exit code 1 and
-    the error on stderr.
+    A BaseException, like KeyboardInterrupt, so that no `except Exception` in
+    start-up code swallows it.
     """
-    rclpy.init(args=args)
-    node = None
+
+
+class StopSignals:
+    """SIGINT and SIGTERM stop a node once, quietly; every later signal is ignored.
+
+    With rclpy's own handlers a second SIGINT (a second Ctrl-C, or ros2 launch's
+    on top of the terminal's) raised KeyboardInterrupt inside destroy_node, and
+    one during start-up gave a traceback. Here the first signal, while the node
+    starts, raises StopRequested, which abandons start-up wherever it is; once
+    the node spins, it has a helper thread shut the context down, and spin_loop
+    ends at its next wake-up (not the handler itself: it runs in the main
+    thread, which may be holding the context's lock, and that lock does not
+    nest). Once a stop is under way, signals do nothing.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.stopping = False   # a signal came or the node is closing: ignore signals
+        self.spinning = False
+        self._shutdown_wanted = threading.Event()
+
+    def install(self) -> None:
+        threading.Thread(target=self._shut_down_when_wanted, name='stop-signals',
+                         daemon=True).start()
+        for signum in self.SIGNALS:
+            signal.signal(signum, self._handle)
+
+    def ignore(self) -> None:
+        """Ignore every signal from now on (the node is closing, then the process ends).
+
+        SIG_IGN, not just the flag: at exit Python puts its own handlers back to
+        the default action, and a second SIGINT then would end the process with -2.
+        """
+        self.stopping = True
+        for signum in self.SIGNALS:
+            signal.signal(signum, signal.SIG_IGN)
+
+    def _handle(self, signum, _frame) -> None:
+        if self.stopping:
+            return
+        self.stopping = True
+        if self.spinning:
+            self._shutdown_wanted.set()
+        else:
+            raise StopRequested(signal.Signals(signum).name)
+
+    def _shut_down_when_wanted(self) -> None:
+        self._shutdown_wanted.wait()
+        try:
+            rclpy.try_shutdown()
+        except Exception as error:  # the main thread closes the node anyway
+            print(f'stopping: {error}', file=sys.stderr)
+
+
+def _rcl_reason(error: Exception) -> str:
+    """Return rcl's error text without its prefix and source locations."""
+    text = str(error).removeprefix('failed to initialize rcl: ')
+    text = re.sub(r'(\. Error: error not set)?(, at \S+:\d+)+$', '', text)
+    return text + (' (no value after :=)' if ":='" in text else '')
+
+
+def _init_rclpy(args) -> str | None:
+    """rclpy.init without rclpy's signal handlers; returns why the command line is bad."""
+    # rcl also logs 'Failed to parse global arguments' for a bad one: hushed for
+    # the init, so that the refusal is one line (unless --log-level set rcl's).
+    set_logger_level('rcl', LoggingSeverity.FATAL)
     try:
-        node = node_class()
-        apply_thread_priority(node)
-        # Everything built so far (modules, weights, the node) lives for the
-        # process: keep it out of the collector's full passes, which would
-        # otherwise walk it every time and stall the loop for milliseconds.
-        gc.freeze()
-        # When a loop deadline comes while spin_loop's background thread runs
-        # Python code, the loop thread gets the GIL within 1 ms, not 5.
-        sys.setswitchinterval(0.001)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except _rclpy.UnknownROSArgsError as error:
+        return f'unknown ROS arguments {error}'
+    except _rclpy.RCLError as error:
+        return f'bad command line: {_rcl_reason(error)}'
+    finally:
+        if get_logger_level('rcl') == LoggingSeverity.FATAL:
+            set_logger_level('rcl', LoggingSeverity.UNSET)
+    return None
+
+
+def _start(node_class):
+    """Build the node and check what it was given at start, before it spins."""
+    node = node_class()
+    declare_thread_priority(node)
+    refuse_unknown_overrides(node)
+    accept_integers_for_doubles(node)
+    apply_thread_priority(node)
+    # Everything built so far (modules, weights, the node) lives for the
+    # process: keep it out of the collector's full passes, which would
+    # otherwise walk it every time and stall the loop for milliseconds.
+    gc.freeze()
+    # When a loop deadline comes while spin_loop's background thread runs
+    # Python code, the loop thread gets the GIL within 1 ms, not 5.
+    sys.setswitchinterval(0.001)
+    return node
+
+
+def _close(node, name: str) -> None:
+    """Destroy the node and shut rclpy down, whatever state a stop left them in."""
+    steps = ([node.destroy_node] if node is not None else []) + [rclpy.try_shutdown]
+    for step in steps:
+        try:
+            step()
+        except Exception as error:  # closing anyway: say so in one line, go on
+            print(f'{name}: while closing: {error}', file=sys.stderr)
+
+
+def run_node(node_class, args=None, fatal: tuple = ()) -> int:
+    """Spin one node with `spin_loop` until SIGINT, SIGTERM or shutdown; return the exit code.
+
+    0 after a signal at any moment, once or repeatedly (see StopSignals). 1,
+    with one line on stderr, for a bad command line, a parameter given at start
+    that the node refuses (out of range, wrong type) or does not have, or a
+    `fatal` error.
+    """
+    stop = StopSignals()
+    try:
+        stop.install()
+        return _run(node_class, args, fatal, stop)
+    except StopRequested:
+        return 0  # the first signal came while a failed start-up was being reported
+
+
+def _run(node_class, args, fatal: tuple, stop: StopSignals) -> int:
+    name, node = node_class.__name__, None
+    try:
+        problem = _init_rclpy(args)
+        if problem is not None:
+            print(f'{name}: {problem}', file=sys.stderr)
+            return 1
+        node = _start(node_class)
+        stop.spinning = True
         spin_loop(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except (StopRequested, ExternalShutdownException):
         pass
     except ParameterException as error:
         # rclpy words it '<reason>: <parameter name>'; name first reads better.
-        reason, _, name = str(error).rpartition(': ')
-        print(f'{node_class.__name__}: parameter {name}: {reason}', file=sys.stderr)
+        reason, _, parameter = str(error).rpartition(': ')
+        print(f'{name}: parameter {parameter}: {reason}', file=sys.stderr)
         return 1
-    except fatal as error:
-        print(f'{node_class.__name__}: {error}', file=sys.stderr)
+    except (UnknownParameters, *fatal) as error:
+        print(f'{name}: {error}', file=sys.stderr)
         return 1
+    except Exception:
+        if not stop.stopping:
+            raise
+        # Else an error of the context a signal is shutting down: the stop asked for.
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        stop.ignore()
+        _close(node, name)
     return 0

@@ -49,7 +49,7 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
         tr.collect()
         tr.timestep += 1
     for _ in range(20):  # warm up torch
-        tr.agent.update(tr.replay.sample(cfg.batch_size))
+        tr.agent.update(tr.replay.sample(tr.batch_size))
     sims = [_Timed(env.step) for env in tr.envs]
     for env, timed in zip(tr.envs, sims, strict=True):
         env.step = timed
@@ -65,7 +65,7 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
         tr.collect()
         t1 = time.perf_counter()
         tr.timestep += 1
-        batch = tr.replay.sample(cfg.batch_size)
+        batch = tr.replay.sample(tr.batch_size)
         t2 = time.perf_counter()
         tr.agent.update(batch)
         collect_t += t1 - t0
@@ -77,7 +77,7 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
              'windows+replay add': collect_t - sim - act.total, 'replay sample': sample_t}
     split.update({f'update/{k}': v for k, v in tr.agent.timers.items()})
     return {'family': family, 'profile': profile, 'tasks': len(tr.envs),
-            'batch': cfg.batch_size, 'hidden': cfg.hidden_dim, 'threads': cfg.num_threads,
+            'batch': tr.batch_size, 'hidden': cfg.hidden_dim, 'threads': cfg.num_threads,
             'timesteps': timesteps, 'env_steps': env_steps, 'seconds': total,
             'env_steps_per_s': env_steps / total, 'split': split}
 

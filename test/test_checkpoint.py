@@ -12,7 +12,7 @@ import torch
 from sim_node.env import ParamEnv
 from zeus_ros.checkpoint import (CheckpointError, load_training_checkpoint, MODEL_FILE,
                                  save_checkpoint, sha256_file, STATE_FILE)
-from zeus_ros.core.config import make_config
+from zeus_ros.train import family_config as make_config
 from zeus_ros.core.inference import InferenceModel
 from zeus_ros.core.replay import ReplayBuffer
 from zeus_ros.core.window import ContextWindow

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from zeus_ros.core.agent import Agent
-from zeus_ros.core.config import make_config
+from zeus_ros.train import family_config as make_config
 from zeus_ros.core.methods import ParamScale
 from zeus_ros.core.methods.zeus import w2_diag_gaussians
 from zeus_ros.core.networks import ContextEncoder

@@ -60,6 +60,15 @@ def env_info(env: ParamEnv) -> dict:
             'control_timestep': env.control_timestep}
 
 
+def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
+                  **overrides) -> ZeusConfig:
+    """Build the preset with the family's facts (Table 11's alpha_psi, reward-varying)."""
+    spec = FAMILIES[family]
+    overrides.setdefault('alpha_psi', spec.alpha_psi)
+    return make_config(family, profile, method, reward_varying=spec.reward_varies_only,
+                       **overrides)
+
+
 def make_agent(cfg: ZeusConfig, env: ParamEnv) -> Agent:
     """Agent sized for the env, with the parameter normalised on the train values."""
     return Agent(cfg, env.obs_dim, env.action_dim, param_normaliser(env.spec.train))
@@ -195,13 +204,14 @@ class Trainer:
 
     def __init__(self, args: RunArgs):
         self.args = args
-        self.cfg = cfg = make_config(args.family, args.profile, args.method, **args.overrides)
+        self.cfg = cfg = family_config(args.family, args.profile, args.method, **args.overrides)
         torch.set_num_threads(cfg.num_threads)
         torch.manual_seed(args.seed)
         self.rng = np.random.default_rng(args.seed)
         self.out = Path(args.out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.values = FAMILIES[args.family].train
+        self.batch_size = cfg.batch_size_per_task * len(self.values)
         self.envs = [ParamEnv(args.family, v, seed=None, episode_steps=cfg.episode_steps)
                      for v in self.values]
         env0 = self.envs[0]
@@ -306,7 +316,7 @@ class Trainer:
 
     def _update(self) -> None:
         if self.timestep > self.cfg.init_steps:
-            metrics = self.agent.update(self.replay.sample(self.cfg.batch_size), self.timestep)
+            metrics = self.agent.update(self.replay.sample(self.batch_size), self.timestep)
             self.logs.accumulate(metrics)
 
     def _periodic(self, bar) -> bool:

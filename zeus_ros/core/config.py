@@ -17,14 +17,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 import json
 
-from sim_node.families import get_family
 from zeus_ros.core.methods import METHODS
 
 PROFILES = ('cpu', 'paper')
 AGGREGATIONS = ('mean', 'sum', 'max')
-
-# Families whose reward (not dynamics) varies use Table 9 instead of Table 8.
-_REWARD_FAMILIES = frozenset({'cheetah-run-v1'})
 
 
 def _f(default, help_text):
@@ -94,19 +90,8 @@ class ZeusConfig:
     episode_steps: int = _f(1000, 'Environment steps per episode.')
     num_threads: int = _f(2, 'torch intra-op threads for training.')
 
-    @property
-    def num_tasks(self) -> int:
-        """Number of training tasks of the family."""
-        return len(get_family(self.family).train)
-
-    @property
-    def batch_size(self) -> int:
-        """Total batch size of one update."""
-        return self.batch_size_per_task * self.num_tasks
-
     def validate(self) -> 'ZeusConfig':
         """Raise ValueError on an inconsistent configuration; return self."""
-        get_family(self.family)
         if self.method not in METHODS:
             raise ValueError(f'method must be one of {sorted(METHODS)}, got {self.method!r}')
         if self.context_input not in ('transition', 'delta'):
@@ -141,15 +126,19 @@ class ZeusConfig:
         return replace(self, **changes).validate()
 
 
-def make_config(family: str, profile: str = 'cpu', method: str = 'zeus',
+def make_config(family: str, profile: str = 'cpu', method: str = 'zeus', *,
+                alpha_psi: float = 1.0, reward_varying: bool = False,
                 **overrides) -> ZeusConfig:
-    """Preset for a family, profile and method, with optional field overrides."""
-    spec = get_family(family)
-    reward_family = family in _REWARD_FAMILIES
+    """Preset for a family, profile and method, with optional field overrides.
+
+    The family's facts arrive as arguments (the learning core does not read
+    the simulation's tables): `alpha_psi` is its Table 11 value, and a
+    reward-varying family takes Table 9's exploration and Adam betas.
+    """
     base = dict(
-        family=family, profile=profile, alpha_psi=spec.alpha_psi,
-        init_steps=10_000 if reward_family else 1500,
-        adam_beta1=0.5 if reward_family else 0.9)
+        family=family, profile=profile, alpha_psi=overrides.pop('alpha_psi', alpha_psi),
+        init_steps=10_000 if reward_varying else 1500,
+        adam_beta1=0.5 if reward_varying else 0.9)
     if profile == 'paper':
         base.update(hidden_dim=1024, batch_size_per_task=128, dynamics_hidden=512,
                     replay_capacity=400_000, context_dim=50, feature_dim=50,

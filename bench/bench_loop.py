@@ -47,7 +47,7 @@ from zeus_ros.core.inference import InferenceModel  # noqa: E402
 from zeus_ros.core.window import ContextWindow  # noqa: E402
 from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
-from zeus_ros.ros_util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
+from zeus_ros.ros_util import call_service, LOOP_QOS, reset_episode, stamp_ns  # noqa: E402
 
 
 def in_process_rate(weights: Path, steps: int, samples: int = 5) -> float:
@@ -123,8 +123,8 @@ class Observer:
 
 def episode_rate(observer: Observer, reset_client, seed: int) -> float:
     """Run one lockstep episode from a reset; its control steps per second."""
-    response = observer.call(reset_client, Reset.Request(seed=seed))
-    episode = int(response.message.split(':')[0].split()[1])
+    reset_client.wait_for_service(timeout_sec=30.0)
+    episode = reset_episode(reset_client, observer.spin_until, seed)
     observer.spin_until(lambda: any(m.episode == episode and m.truncated
                                     for _, m in observer.steps[-5:]), 300.0)
     times = [t for t, m in observer.steps if m.episode == episode]

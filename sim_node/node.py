@@ -320,7 +320,7 @@ class SimNode(Node):
         self._start_episode()
         stream = (f'stream restarted at seed {self.stream_seed}' if restarts
                   else f'stream of seed {self.stream_seed} continued')
-        response.success = True
+        response.success, response.episode = True, self.episode
         response.message = (f'episode {self.episode}: {stream}, '
                             f'{self.spec.param_name}={self.env.param_value:g}')
         self.get_logger().info(f'reset to {response.message}')

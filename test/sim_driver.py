@@ -9,7 +9,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
-from zeus_ros.ros_util import call_service, stamp_ns as stamp_key
+from zeus_ros.ros_util import call_service, reset_episode, stamp_ns as stamp_key
 
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 WALKER_ACTUATORS = ('right_hip', 'right_knee', 'right_ankle', 'left_hip', 'left_knee',
@@ -77,11 +77,10 @@ class LockstepDriver:
         params = params or {}
         self.states.clear()
         self.steps.clear()
-        response = self._call(self.reset_client, Reset.Request(
-            seed=seed, param_names=list(params), param_values=[float(v) for v in
-                                                                params.values()]))
-        assert response.success, response.message
-        episode = int(response.message.split(':')[0].split()[1])
+        self.reset_client.wait_for_service(timeout_sec=30.0)
+        episode = reset_episode(self.reset_client,
+                                lambda done, seconds: spin_until(self.node, done, seconds),
+                                seed, params, self.timeout)
         self.current = self._wait_for(lambda i: i.episode == episode and i.step == 0)
         return self._pair(self.current)
 

@@ -57,7 +57,7 @@ def reset_state(driver, seed):
     """Reset; return the response's message and the new episode's first state."""
     response = call_reset(driver, seed)
     assert response.success, response.message
-    episode = int(response.message.split(':')[0].split()[1])
+    episode = response.episode
     driver.current = driver._wait_for(lambda i: i.episode == episode and i.step == 0)
     return response.message, driver.states[driver.current]
 
@@ -101,6 +101,18 @@ def test_seed_minus_one_keeps_the_stream_and_a_seed_restarts_it_and_reads_back(s
     assert get_parameters(ros_node, ['seed'])[0].integer_value == SEED_MAX
 
 
+def test_an_empty_reset_request_keeps_the_stream_and_names_its_episode(sim):
+    """The .srv default seed is -1: `ros2 service call ... "{}"` continues the stream."""
+    _, driver = sim()
+    driver.reset(seed=5)
+    assert Reset.Request().seed == -1
+    response = driver._call(driver.reset_client, Reset.Request())
+    assert response.success and 'stream of seed 5 continued' in response.message
+    assert response.message.startswith(f'episode {response.episode}:')
+    key = driver._wait_for(lambda i: i.episode == response.episode and i.step == 0)
+    assert driver.steps[key].episode == response.episode
+
+
 @pytest.mark.parametrize('seed', [2**32, 2**40, 2**63 - 1, -2, -3, -2**63])
 def test_an_out_of_range_seed_is_refused_with_a_reason_and_the_sim_lives_on(sim, seed):
     proc, driver = sim()
@@ -127,7 +139,7 @@ def test_the_log_and_the_response_name_the_same_episode(sim):
     driver.reset(seed=0)
     response = call_reset(driver, 4, ['friction'], [1.2])
     assert response.success, response.message
-    episode = int(response.message.split(':')[0].split()[1])
+    episode = response.episode
     driver.current = driver._wait_for(lambda i: i.episode == episode and i.step == 0)
     assert list(driver.steps[driver.current].param_values) == [1.2]
     assert spin_until(driver.node, lambda: f'reset to episode {episode}:' in proc.output(), 5.0)

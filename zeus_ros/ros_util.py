@@ -167,6 +167,27 @@ def call_service(client, request, wait, timeout: float = 30.0, attempt_s: float 
     raise TimeoutError(f'{client.srv_name} did not answer within {timeout:g} s')
 
 
+class ResetRefused(RuntimeError):
+    """The sim refused a reset request; the message says why."""
+
+
+def reset_episode(client, wait, seed: int = -1, params: dict | None = None,
+                  timeout: float = 30.0) -> int:
+    """Ask `sim_node` for a new episode and return its number (ResetRefused if refused).
+
+    `seed` -1 keeps the random stream; `params` {name: value} are set first.
+    `wait(predicate, seconds)` spins the client's node, as for `call_service`.
+    """
+    from zeus_msgs.srv import Reset
+    params = params or {}
+    request = Reset.Request(seed=int(seed), param_names=list(params),
+                            param_values=[float(v) for v in params.values()])
+    response = call_service(client, request, wait, timeout)
+    if not response.success:
+        raise ResetRefused(response.message)
+    return int(response.episode)
+
+
 def diagnostic_array(node, name: str, hardware_id: str, values: dict,
                      problem: str | None = None) -> DiagnosticArray:
     """One status for `node`: OK, or WARN with `problem` as its message."""

@@ -8,11 +8,34 @@ import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, EmitEvent, RegisterEventHandler
+from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo, RegisterEventHandler
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+
+class NodeFailed(RuntimeError):
+    """A node of the graph exited with an error: the launch fails with it."""
+
+
+def exit_problem(name, returncode):
+    """Why the launch must fail when `name` exited with `returncode` (None: a clean stop)."""
+    if returncode in (0, None):
+        return None
+    how = f'was killed by signal {-returncode}' if returncode < 0 else \
+        f'exited with code {returncode}'
+    return f'{name} {how}; stopping the launch (its message is above)'
+
+
+def _end_launch(event, context):
+    # An exception raised in an event handler makes LaunchService.run return 1,
+    # which `ros2 launch` returns; a clean exit just shuts the others down.
+    problem = exit_problem(event.action.name, event.returncode)
+    if problem is not None:
+        raise NodeFailed(problem)
+    return [LogInfo(msg=f'{event.action.name} stopped; shutting down'),
+            EmitEvent(event=Shutdown(reason=f'{event.action.name} stopped'))]
 
 
 def generate_launch_description():
@@ -29,10 +52,10 @@ def generate_launch_description():
         Node(package='zeus_ros', executable='policy_node', name='policy_node',
              output='screen', parameters=[config, {'weights': weights}, priority]),
     ]
-    # Like bringup: when one node ends, the whole launch ends.
+    # Like bringup: when one node ends, the whole launch ends, and a node that
+    # FAILED (exit code not 0) makes `ros2 launch` itself exit non-zero.
     shutdown_on_exit = [
-        RegisterEventHandler(OnProcessExit(target_action=node,
-                                           on_exit=[EmitEvent(event=Shutdown())]))
+        RegisterEventHandler(OnProcessExit(target_action=node, on_exit=_end_launch))
         for node in nodes
     ]
     return LaunchDescription([

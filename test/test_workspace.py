@@ -73,3 +73,28 @@ def test_config_yaml_is_what_the_sim_node_runs_with(spawn, ros_node):
                             lambda done, seconds: spin_until(ros_node, done, seconds))
     values = [parameter_value_to_python(v) for v in response.values]
     assert dict(zip(expected, values, strict=True)) == expected
+
+
+def _launch_function(name):
+    """Compile one plain function of the launch file (it needs no `launch` import)."""
+    tree = ast.parse((REPO / 'launch' / 'zeus.launch.py').read_text())
+    func = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == name)
+    namespace = {}
+    exec(compile(ast.Module(body=[func], type_ignores=[]), 'zeus.launch.py', 'exec'),
+         namespace)
+    return namespace[name]
+
+
+def test_launch_fails_when_a_node_fails_and_ends_cleanly_when_one_stops():
+    exit_problem = _launch_function('exit_problem')
+    assert exit_problem('policy_node', 0) is None
+    assert exit_problem('policy_node', None) is None
+    assert 'exited with code 1' in exit_problem('context_node', 1)
+    assert 'killed by signal 9' in exit_problem('sim_node', -9)
+    tree = ast.parse((REPO / 'launch' / 'zeus.launch.py').read_text())
+    handlers = [n for n in ast.walk(tree) if isinstance(n, ast.Call)
+                and getattr(n.func, 'id', None) == 'OnProcessExit']
+    assert handlers and all(any(k.arg == 'on_exit' and getattr(k.value, 'id', '') ==
+                                '_end_launch' for k in h.keywords) for h in handlers)
+    raises = [n for n in ast.walk(tree) if isinstance(n, ast.Raise)]
+    assert raises, 'a failed node must raise in the handler (launch then returns 1)'

@@ -76,8 +76,8 @@ def spawn(tmp_path):
     """Start processes that are stopped (SIGINT, then SIGKILL) after the test."""
     started = []
 
-    def _spawn(argv, name='proc'):
-        proc = NodeProcess(argv, tmp_path / f'{name}_{len(started)}.log')
+    def _spawn(argv, name='proc', env=None):
+        proc = NodeProcess(argv, tmp_path / f'{name}_{len(started)}.log', env)
         started.append(proc)
         return proc
 

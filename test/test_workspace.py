@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 import re
 import subprocess
+import sys
 
 from ament_index_python.packages import get_package_share_directory, get_packages_with_prefixes
 from conftest import INSTALL_BIN, installed_exe, REPO, spin_until
@@ -35,9 +36,32 @@ def test_declared_executables_are_installed_where_ros2_run_looks():
         assert os.access(path, os.X_OK), f'{path} is not executable'
 
 
-def test_discovery_is_confined_to_localhost():
-    assert os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
-    assert 20 <= int(os.environ['ROS_DOMAIN_ID']) < 100
+PROBE = """
+import sys, time, rclpy
+from std_msgs.msg import String
+rclpy.init()
+node = rclpy.create_node('domain_probe')
+pub = node.create_publisher(String, '/zeus_domain_probe', 10)
+while rclpy.ok():
+    pub.publish(String(data=sys.argv[1]))
+    time.sleep(0.05)
+"""
+
+
+def test_the_suite_hears_its_own_domain_and_not_another(spawn, ros_node):
+    """The claimed ROS_DOMAIN_ID isolates the suite: a publisher on another id is never heard."""
+    from std_msgs.msg import String
+    ours = int(os.environ['ROS_DOMAIN_ID'])
+    other = 20 + (ours - 20 + 40) % 80
+    heard = set()
+    ros_node.create_subscription(String, '/zeus_domain_probe',
+                                 lambda msg: heard.add(msg.data), 10)
+    for domain in (ours, other):
+        spawn([sys.executable, '-c', PROBE, f'domain {domain}'], f'probe_{domain}',
+              env=dict(os.environ, ROS_DOMAIN_ID=str(domain)))
+    assert spin_until(ros_node, lambda: f'domain {ours}' in heard, 30.0), heard
+    spin_until(ros_node, lambda: False, 3.0)
+    assert heard == {f'domain {ours}'}
 
 
 def test_ruff_lint_clean():

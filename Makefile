@@ -17,8 +17,12 @@ setup:
 test: setup
 	$(IN_WS) python -m pytest -q test
 
+# The context-free reference runs beside the adaptive policy once its weights exist.
+DEMO_WEIGHTS ?= weights/walker-walk-v0-zeus
+DEMO_REFERENCE ?= $(wildcard weights/walker-walk-v0-sac)
 demo: setup
-	$(IN_WS) python -m zeus_ros.demo --weights weights/walker-walk-v0-zeus --out demo_out
+	$(IN_WS) python -m zeus_ros.demo --weights $(DEMO_WEIGHTS) --out demo_out \
+	  $(if $(DEMO_REFERENCE),--reference-weights $(DEMO_REFERENCE))
 
 lint: setup
 	$(IN_WS) ruff check .

@@ -1,38 +1,147 @@
-"""The demo's pieces in short form: three nodes, swaps, an MCAP of every topic, a plot."""
+"""The demo end to end, and the ways it must fail loudly.
+
+Three nodes twice (adaptive, context-free reference), exact swaps, every step
+recorded into rosbag2 bags (read back with rosbags), a plot and a GIF.
+"""
 
 import json
 import subprocess
 import sys
 
 from conftest import REPO
-from mcap_ros2.reader import read_ros2_messages
-from zeus_ros.demo import RECORDED_TOPICS
+from PIL import Image
+import pytest
+from sensor_msgs.msg import JointState
+from test_recording import assert_consistent, assert_loop_qos, read_bag
+from test_recording_video import robot_pixels
+from zeus_msgs.msg import StepInfo
+from zeus_ros.demo import check_episode, DemoFailure, RECORDED_TOPICS
+
+SCHEDULE = '0:1.0,333:0.4,666:1.7'
 
 
-def test_short_demo_records_every_topic_and_plots(small_checkpoint, tmp_path):
+@pytest.fixture(scope='session')
+def sac_checkpoint(tmp_path_factory):
+    """Train a tiny context-free (method sac) walker-walk-v0 checkpoint."""
+    out = tmp_path_factory.mktemp('train_sac') / 'run'
+    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', 'walker-walk-v0',
+                    '--method', 'sac', '--steps', '300', '--out', str(out), '--eval-every', '0',
+                    '--set', 'init_steps=100', 'hidden_dim=32', '--quiet'],
+                   check=True, cwd=REPO)
+    return out / 'checkpoint'
+
+
+def run_demo(*args, timeout=420):
+    return subprocess.run([sys.executable, '-m', 'zeus_ros.demo', *map(str, args)],
+                          cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+def check_demo_bag(bag_dir) -> dict[int, StepInfo]:
+    """Check that the bag holds one whole episode, swapped on schedule, and nothing after."""
+    bag = read_bag(bag_dir)
+    assert bag.types == {t: spec.type_name for t, spec in RECORDED_TOPICS.items()}
+    assert all(bag.counts[t] > 0 for t in RECORDED_TOPICS), bag.counts
+    assert_consistent(bag)
+    for topic in ('/joint_states', '/joint_commands', '/zeus/step', '/zeus/context', '/clock'):
+        assert_loop_qos(bag.qos[topic])
+    steps = bag.messages['/zeus/step']
+    episode = steps[-1].episode - 1   # the sim started the next episode and stopped there
+    mine = [s for s in steps if s.episode == episode]
+    assert [s.step for s in mine] == list(range(1001))        # every step, once, in order
+    assert mine[-1].truncated and not any(s.truncated for s in mine[:-1])
+    after = [s for s in steps if s.episode > episode]
+    assert [(s.episode, s.step) for s in after] == [(episode + 1, 0)]   # no run-away
+    by_step = {s.step: s for s in mine}
+    true = {n: by_step[n].param_values[0] for n in (0, 332, 333, 665, 666, 1000)}
+    assert true == {0: 1.0, 332: 1.0, 333: 0.4, 665: 0.4, 666: 1.7, 1000: 1.7}
+    stamps = {s.header.stamp.sec * 10**9 + s.header.stamp.nanosec: s.step for s in mine}
+    answered = [stamps[c.header.stamp.sec * 10**9 + c.header.stamp.nanosec]
+                for c in bag.messages['/joint_commands']
+                if c.header.stamp.sec * 10**9 + c.header.stamp.nanosec in stamps]
+    assert answered == list(range(1000))   # a command for each state but the last
+    return by_step
+
+
+def test_demo_runs_a_whole_episode_twice_and_records_every_step(small_checkpoint,
+                                                                sac_checkpoint, tmp_path):
     out = tmp_path / 'demo_out'
-    result = subprocess.run(
-        [sys.executable, '-m', 'zeus_ros.demo', '--weights', str(small_checkpoint),
-         '--steps', '150', '--schedule', '0:1.0,50:0.4,100:1.7', '--out', str(out)],
-        cwd=REPO, capture_output=True, text=True, timeout=240)
+    result = run_demo('--weights', small_checkpoint, '--reference-weights', sac_checkpoint,
+                      '--schedule', SCHEDULE, '--out', out, '--video-every', 20)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert 'total return' in result.stdout
-    assert 'not received' not in result.stdout, result.stdout   # every step recorded
+    assert 'all 1001 states received' in result.stdout and 'reference' in result.stdout
 
-    counts, friction_seen = dict.fromkeys(RECORDED_TOPICS, 0), set()
-    for message in read_ros2_messages(out / 'demo.mcap'):
-        counts[message.channel.topic] += 1
-        if message.channel.topic == '/zeus/step':
-            friction_seen.add(message.ros_msg.param_values[0])
-    assert all(n > 0 for n in counts.values()), counts
-    assert counts['/zeus/step'] >= 150
-    assert {1.0, 0.4, 1.7} <= friction_seen
-
+    adaptive, reference = check_demo_bag(out / 'demo'), check_demo_bag(out / 'demo_reference')
     segments = json.loads((out / 'segments.json').read_text())
-    assert [s['true'] for s in segments] == [1.0, 0.4, 1.7]
-    assert sum(s['steps'] for s in segments) >= 150
+    assert [(s['first_step'], s['true'], s['steps']) for s in segments] == [
+        (0, 1.0, 332), (333, 0.4, 333), (666, 1.7, 335)]
+    for segment, start, end in zip(segments, (1, 333, 666), (333, 666, 1001), strict=True):
+        assert segment['episode_return'] == pytest.approx(
+            sum(adaptive[n].reward for n in range(start, end)))
+        assert segment['reference_return'] == pytest.approx(
+            sum(reference[n].reward for n in range(start, end)))
+    assert f'{sum(s["episode_return"] for s in segments):.1f}' in result.stdout
+
     png = (out / 'demo.png').read_bytes()
-    assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 10_000
+    assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000
+    if 'video skipped: no off-screen OpenGL' in result.stdout:
+        pytest.skip(result.stdout.split('video skipped: ')[1])
+    with Image.open(out / 'demo.gif') as gif:
+        assert (gif.n_frames, gif.size) == (51, (320, 240))   # steps 0, 20, ..., 1000
+        gif.seek(25)
+        assert robot_pixels(gif) > 500
+
+
+def test_demo_fails_loudly_when_out_of_time(small_checkpoint, tmp_path):
+    result = run_demo('--weights', small_checkpoint, '--max-seconds', 0.2,
+                      '--out', tmp_path, '--video-every', 0)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert 'demo: gave up waiting for step' in result.stderr, result.stderr
+    assert 'Traceback' not in result.stderr and 'total' not in result.stdout
+    bag = read_bag(tmp_path / 'demo')   # closed and readable all the same
+    assert_consistent(bag)
+
+
+def _episode(n: int, truncated_at: int | None = None):
+    rows, contexts, forwarded = [], {}, {}
+    for step in range(n + 1):
+        row = StepInfo(episode=1, step=step, truncated=step == truncated_at,
+                       applied_action=[] if step == 0 else [0.5, -1.0])
+        row.header.stamp.sec = step
+        rows.append(row)
+        contexts[step * 10**9] = object()
+        command = JointState(effort=[0.5, -3.0])   # the sim clips it to -1
+        command.header.stamp.sec = step
+        forwarded[step * 10**9] = command
+    return rows, contexts, forwarded
+
+
+def test_check_episode_names_what_went_wrong():
+    rows, contexts, forwarded = _episode(1000, truncated_at=1000)
+    check_episode(rows, contexts, forwarded, 1000, 1000)
+    rows_short, contexts_short, forwarded_short = _episode(20, truncated_at=20)
+    check_episode(rows_short, contexts_short, forwarded_short, 20, 1000)
+    cases = {
+        'states not received (first missing: step 7)': (rows[:7] + rows[8:], contexts,
+                                                         forwarded, 1000),
+        'no truncation seen at step 1000': (_episode(1000)[0], contexts, forwarded, 1000),
+        'the episode ended at step 20 before step 30': (rows_short, contexts_short,
+                                                        forwarded_short, 30),
+        'states without a context (first: step 3)': (
+            rows, {k: v for k, v in contexts.items() if k != 3 * 10**9}, forwarded, 1000),
+        "steps not stepped on the policy's command (first: step 5)": (
+            rows, contexts, {k: v for k, v in forwarded.items() if k != 4 * 10**9}, 1000),
+    }
+    for message, (r, c, f, steps) in cases.items():
+        with pytest.raises(DemoFailure, match=message.replace('(', r'\(').replace(')', r'\)')):
+            check_episode(r, c, f, steps, 1000)
+
+
+def test_demo_refuses_a_reference_with_a_context(small_checkpoint, tmp_path):
+    result = run_demo('--weights', small_checkpoint, '--reference-weights', small_checkpoint,
+                      '--out', tmp_path)
+    assert result.returncode == 1
+    assert 'the reference must be context-free' in result.stderr
+    assert 'Traceback' not in result.stderr
 
 
 def test_demo_and_bringup_refuse_missing_weights_in_one_line(tmp_path):

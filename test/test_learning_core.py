@@ -461,3 +461,19 @@ def test_hyperdynamics_generates_per_context_weights_trained_through_the_encoder
     zero_all(agent)
     agent.critic_loss(b)[0].backward()
     assert has_grad(m.psi)   # trained jointly with the policy (context_critic_grad)
+
+
+def test_zeus_id_identification_weight_routes_the_regression_into_psi_only():
+    b = make_batch()
+    after = {}
+    for weight in (0.0, 1.0):
+        agent = make_agent('zeus-id', context_length=K, id_weight=weight)
+        torch.manual_seed(7)
+        agent.method.update(b, agent.phi(b.obs).detach(), 1)
+        after[weight] = {n: [p.detach().clone() for p in module(agent, n).parameters()]
+                         for n in ('psi', 'T', 'R', 'decoder')}
+    moved = lambda n: any(not torch.equal(p, q) for p, q in zip(  # noqa: E731
+        after[0.0][n], after[1.0][n], strict=True))
+    assert moved('psi')                       # the regression shaped psi
+    assert not moved('T') and not moved('R')  # and nothing else of the model
+    assert not moved('decoder')               # the decoder learns the same either way

@@ -48,6 +48,9 @@ class ZeusConfig:
         True, 'zeus-id: let the critic TD loss train psi (zeus always does).')
     metric_normalise: bool = _f(
         False, 'zeus-id: divide the task metric and latent distances by their batch means.')
+    id_weight: float = _f(
+        0.0, 'Weight of the parameter-regression loss THROUGH psi (privileged supervision in '
+        'training, as UP-OSI; 0 = the decoder reads a detached latent, a pure probe).')
     backward_weight: float = _f(0.5, 'cadm: weight beta of the backward dynamics loss (Table 10).')
     osi_warmup_updates: int = _f(
         800, 'up-osi: updates that collect with the true parameter before OSI acts '
@@ -106,6 +109,8 @@ class ZeusConfig:
             raise ValueError('context_length must be >= 1')
         if self.alpha_psi < 0:
             raise ValueError('alpha_psi must be >= 0')
+        if self.id_weight < 0:
+            raise ValueError('id_weight must be >= 0')
         return self
 
     def to_dict(self) -> dict:

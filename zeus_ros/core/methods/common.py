@@ -172,13 +172,33 @@ class EncoderMethod(ContextMethod):
         if valid_rows.shape[0] > 1:
             self.psi.norm.observe(self.psi.features(valid_rows))
         loss, c, metrics = self.model_loss(batch)
-        self.model_opt.zero_grad(set_to_none=True)
-        loss.backward()
-        self.model_opt.step()
+        decoder_loss = None
         if self.decoder is not None:
-            dec = F.mse_loss(self.decoder(c.detach()), self.param.normalise(batch.param))
-            self.decoder_opt.zero_grad(set_to_none=True)
-            dec.backward()
-            self.decoder_opt.step()
-            metrics['decoder_loss'] = dec.detach()
+            # id_weight > 0: the regression also shapes psi (privileged, as UP-OSI's OSI);
+            # 0: the decoder is a probe on the detached latent.
+            read = c if self.cfg.id_weight > 0 else c.detach()
+            decoder_loss = F.mse_loss(self.decoder(read), self.param.normalise(batch.param))
+            loss = loss + self.cfg.id_weight * decoder_loss if self.cfg.id_weight > 0 \
+                else loss
+            metrics['decoder_loss'] = decoder_loss.detach()
+        self._step(loss, decoder_loss)
         return metrics
+
+    def _step(self, loss, decoder_loss) -> None:
+        self.model_opt.zero_grad(set_to_none=True)
+        if decoder_loss is None:
+            loss.backward()
+            self.model_opt.step()
+            return
+        self.decoder_opt.zero_grad(set_to_none=True)
+        if self.cfg.id_weight > 0:
+            loss.backward()            # includes id_weight * decoder loss
+            # the decoder learns at its own rate from the unweighted loss's gradient
+            for p in self.decoder.parameters():
+                if p.grad is not None:
+                    p.grad.div_(self.cfg.id_weight)
+        else:
+            loss.backward()
+            decoder_loss.backward()
+        self.model_opt.step()
+        self.decoder_opt.step()

@@ -38,3 +38,11 @@ bench: setup
 	  --realtime-weights weights/cheetah-run-v0-zeus --realtime-seconds $(REALTIME_SECONDS) \
 	  --compare-normal-scheduler --json bench/results_loop.json
 	$(IN_WS) python bench/bench_trainer.py --profile cpu --threads 2 1
+
+# Soak (issue 17): lockstep loop, a live swap every 10 s, a kill -9 and restart
+# of each node; figures per minute and the goals' pass/fail (bench/soak.py).
+# Exits non-zero when a goal is missed. SOAK_MINUTES=30 for the recorded run.
+SOAK_MINUTES ?= 30
+.PHONY: soak
+soak: setup
+	$(IN_WS) python bench/soak.py --minutes $(SOAK_MINUTES) --json bench/results_soak.json

@@ -1,0 +1,89 @@
+"""`make soak`'s script end to end, compressed to 45 s: every figure, every restart done.
+
+A real soak (three node processes, DDS on this test's domain) through the
+script's entry point. It checks that the run produced each figure the goals
+are judged on and that each node really was killed (SIGKILL) and replaced;
+it does not require the goals to be met (they are the soak's verdict, not a
+timed test's).
+"""
+
+import json
+import subprocess
+import sys
+
+from conftest import REPO
+
+NODES = ['sim_node', 'context_node', 'policy_node']
+MINUTES = 0.75
+RESULT_KEYS = {'family', 'weights', 'param_name', 'live_range', 'minutes', 'duration_s',
+               'machine', 'ros_domain_id', 'load_avg_start', 'load_avg_end', 'steps_total',
+               'per_minute', 'stalls', 'max_gap_s', 'crashes', 'restarts', 'rss', 'swaps',
+               'diagnostics', 'goals', 'passed', 'interference', 'log_dir'}
+RESTART_KEYS = {'node', 'cause', 'old_pid', 'new_pid', 'killed_at_s', 'spawned_at_s',
+                'startup_line_at_s', 'first_step_at_s', 'control_back_at_s',
+                'control_back_after_spawn_s', 'control_back_after_startup_s', 'upper_bound'}
+
+
+def run_soak(tmp_path):
+    # Restarts early enough that the last restarted node (torch import, weights,
+    # discovery: 5-10 s on a loaded machine) is back before the end; RSS growth
+    # from 6 s after each start, so that every process but the first sim has one.
+    argv = [sys.executable, str(REPO / 'bench' / 'soak.py'), '--minutes', str(MINUTES),
+            '--restart-at', '0.15,0.4,0.65', '--down-seconds', '1',
+            '--rss-baseline-minutes', '0.1', '--json', str(tmp_path / 'soak.json'),
+            '--log-dir', str(tmp_path / 'logs')]
+    proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=150)
+    # 2: the soak did not run, or another loop shared its ROS domain.
+    assert proc.returncode in (0, 1), proc.stdout + proc.stderr
+    return proc, json.loads((tmp_path / 'soak.json').read_text())
+
+
+def check_restarts(result):
+    soak_restarts = [r for r in result['restarts'] if r['cause'] == 'soak']
+    assert [r['node'] for r in soak_restarts] == NODES
+    for restart in soak_restarts:
+        assert set(restart) == RESTART_KEYS
+        assert restart['new_pid'] != restart['old_pid']
+        assert restart['killed_at_s'] < restart['spawned_at_s'] < result['duration_s']
+        assert restart['startup_line_at_s'] is not None, restart   # the new process ran
+        assert restart['first_step_at_s'] is not None, restart
+    by_process = {(p['node'], p['incarnation']): p for p in result['rss']}
+    for node in NODES:
+        killed, replacement = by_process[node, 1], by_process[node, 2]
+        assert killed['killed_by_soak'] and killed['exit_code'] == -9   # SIGKILL, as asked
+        assert not replacement['killed_by_soak']
+        assert replacement['ended_at_s'] >= result['duration_s']       # lived to the end
+
+
+def check_figures(result):
+    assert set(result) == RESULT_KEYS
+    assert [m['minute'] for m in result['per_minute']] == [1]
+    assert result['per_minute'][0]['steps_per_s'] > 0
+    assert result['per_minute'][0]['controlled_steps_per_s'] > 0
+    # The sim's downtime is a gap of its own (flagged, not counted as a stall).
+    assert any(s['sim_down'] for s in result['stalls']), result['stalls']
+    assert isinstance(result['crashes'], list)
+    for process in result['rss']:
+        assert len(process['per_minute_mb']) == 1
+        assert process['end_mb'] > 0
+        if process['incarnation'] == 2:
+            assert process['growth_pct'] is not None, process
+    swaps = result['swaps']
+    assert swaps['requested'] + swaps['skipped_sim_down'] == 4   # at 10, 20, 30 and 40 s
+    assert swaps['accepted'] >= 1 and len(swaps['values']) == swaps['requested']
+    lo, hi = result['live_range']
+    assert all(lo <= v <= hi for v in swaps['values'])
+    # /diagnostics was heard from every node.
+    assert {name.split(':')[0] for name in result['diagnostics']['last']} >= set(NODES)
+    assert len(result['goals']) == 4
+    assert result['passed'] == all(g['met'] for g in result['goals'])
+
+
+def test_soak_reports_every_figure_and_restarts_each_node(tmp_path):
+    proc, result = run_soak(tmp_path)
+    check_figures(result)
+    check_restarts(result)
+    assert proc.returncode == (0 if result['passed'] else 1)
+    verdict = [line for line in proc.stdout.splitlines() if line.startswith('soak result: ')]
+    assert len(verdict) == 1
+    assert verdict[0].startswith('soak result: ' + ('PASS' if result['passed'] else 'FAIL'))

@@ -365,9 +365,11 @@ def _gif_frame(image, text: str):
     palette = frame.getpalette()[:3 * _SCENE_COLOURS]
     frame.putpalette(palette + [0] * (3 * _SCENE_COLOURS - len(palette))
                      + [0, 0, 0, 255, 255, 255])
+    # At the bottom, over the floor: the side camera puts the torso at the top.
     draw = ImageDraw.Draw(frame)
-    draw.rectangle((0, 0, frame.width, 20), fill=_SCENE_COLOURS)
-    draw.text((6, 3), text, fill=_SCENE_COLOURS + 1, font=ImageFont.load_default(size=13))
+    draw.rectangle((0, frame.height - 20, frame.width, frame.height), fill=_SCENE_COLOURS)
+    draw.text((6, frame.height - 17), text, fill=_SCENE_COLOURS + 1,
+              font=ImageFont.load_default(size=13))
     return frame
 
 

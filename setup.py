@@ -33,6 +33,7 @@ setup(
             'eval = zeus_ros.evaluate:main',
             'adaptation_report = zeus_ros.adaptation:main',
             'sweep = zeus_ros.sweep:main',
+            'foxglove_view = zeus_ros.foxglove_view:main',
         ],
     },
 )

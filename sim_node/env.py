@@ -4,7 +4,10 @@
 model built for one value of the family's parameter, steps it at the task's
 control rate for 1000-step episodes, and can swap the parameter mid-episode:
 the model is rebuilt and the whole simulator state (positions, velocities,
-actuator state, warm start, time) carried over, so motion continues.
+actuator state, warm start, time) carried over, so motion continues. A swap
+also comes in two halves, for a caller that must not wait for MuJoCo's
+compiler (the sim node): `prepare_param` on any thread, `apply_prepared` at a
+step boundary (the same trajectory as `set_param`).
 
 The observation is a function of joint positions and velocities only (see
 `ObservationLayout`), so the sim node's `sensor_msgs/JointState` carries
@@ -14,6 +17,7 @@ everything the policy needs, and the vector rebuilt from it is bit-identical.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import functools
 import math
 import xml.etree.ElementTree as ElementTree
 
@@ -59,8 +63,8 @@ def _make_task(spec: FamilySpec, value: float, random: np.random.RandomState):
     return cheetah.Cheetah(random=random)
 
 
-def build_physics(spec: FamilySpec, value: float):
-    """Compile the family's MuJoCo model with the parameter set to `value`."""
+def _edited_model(spec: FamilySpec, value: float) -> tuple[str, dict, float | None]:
+    """Return the family's MJCF with `value` put in (families.py's edit), assets, total mass."""
     xml, assets = DOMAIN_MODELS[spec.domain]()
     xml = xml.decode() if isinstance(xml, bytes) else xml
     root = ElementTree.fromstring(spec.edit_xml(xml, value))
@@ -70,12 +74,101 @@ def build_physics(spec: FamilySpec, value: float):
     total_mass = None
     if compiler is not None and compiler.get('settotalmass') is not None:
         total_mass = float(compiler.attrib.pop('settotalmass'))
-    physics = _PHYSICS[spec.domain].from_xml_string(
-        ElementTree.tostring(root, encoding='unicode'), assets)
+    return ElementTree.tostring(root, encoding='unicode'), assets, total_mass
+
+
+def build_physics(spec: FamilySpec, value: float):
+    """Compile the family's MuJoCo model with the parameter set to `value`."""
+    xml, assets, total_mass = _edited_model(spec, value)
+    physics = _PHYSICS[spec.domain].from_xml_string(xml, assets)
     if total_mass is not None:
         mujoco.mj_setTotalmass(physics.model.ptr, total_mass)
         mujoco.mj_setConst(physics.model.ptr, physics.data.ptr)
     return physics
+
+
+def build_model(spec: FamilySpec, value: float) -> mujoco.MjModel:
+    """Compile the model `build_physics` compiles, for a swap: no Physics, low-res textures.
+
+    Every field but the textures is the one `build_physics` gives (test_swap_physics.py).
+    The builtin textures (dm_control's 800x800 skybox, 11.8 MB) are made 2x2:
+    they only colour renderings, a swap keeps the live model's (`_ModelWriter`),
+    and generating them was 98 % of the compile (~100 ms against ~2 ms).
+    """
+    xml, _, total_mass = _edited_model(spec, value)
+    model = mujoco.MjModel.from_xml_string(xml, dict(_low_res_assets(spec.domain)))
+    if total_mass is not None:
+        mujoco.mj_setTotalmass(model, total_mass)
+        mujoco.mj_setConst(model, mujoco.MjData(model))
+    return model
+
+
+@functools.lru_cache(maxsize=None)
+def _low_res_assets(domain: str) -> dict:
+    """Return the domain's assets with every builtin texture at 2x2 pixels.
+
+    (The main MJCF of these domains has no texture; one there would only compile slower.)
+    """
+    _, assets = DOMAIN_MODELS[domain]()
+    low_res = {}
+    for name, content in assets.items():
+        if name.endswith('.xml'):
+            root = ElementTree.fromstring(content)
+            for texture in root.iter('texture'):
+                if texture.get('builtin') is not None:
+                    texture.set('width', '2')
+                    texture.set('height', '2')
+            content = ElementTree.tostring(root)
+        low_res[name] = content
+    return low_res
+
+
+class _ModelWriter:
+    """Writes a newly compiled model into a live one of the same structure, in place.
+
+    A swap could put a new Physics in force (what `ParamEnv.set_param` does),
+    but constructing one costs milliseconds of Python (dm_control's named
+    indexing) and leaves cyclic garbage behind. Every family's edit changes
+    values only (friction, sizes, positions, masses and what the compiler
+    derives from them), never the structure, so copying every array and the
+    `opt` and `stat` fields makes the live model equal to the new one, field
+    for field. The textures (`build_model` compiles them at 2x2) and `vis`
+    (rendering only, never edited) stay the live model's.
+    """
+
+    def __init__(self, live: mujoco.MjModel):
+        self.live = live
+        self.arrays = [name for name in dir(live) if not name.startswith(('_', 'tex_'))
+                       and isinstance(getattr(live, name), np.ndarray)]
+        self._targets = [getattr(live, name) for name in self.arrays]  # views, bound once
+        self.structs = {name: [field for field in dir(getattr(live, name))
+                               if not field.startswith('_')
+                               and not callable(getattr(getattr(live, name), field))]
+                        for name in ('opt', 'stat')}
+
+    def write(self, model: mujoco.MjModel) -> None:
+        """Copy `model` (of the same structure: `structure_of` equal) into the live model."""
+        for target, name in zip(self._targets, self.arrays, strict=True):
+            target[...] = getattr(model, name)
+        for struct, fields in self.structs.items():
+            source, target = getattr(model, struct), getattr(self.live, struct)
+            for field in fields:
+                value = getattr(source, field)
+                if isinstance(value, np.ndarray):
+                    getattr(target, field)[...] = value
+                else:
+                    setattr(target, field, value)
+
+
+def structure_of(model: mujoco.MjModel) -> dict:
+    """Return the model's sizes (nq, nbody, ngeom...): the same for every value of a family.
+
+    The two that count texture pixels and bytes in all (`build_model`'s
+    textures are smaller) are not part of it.
+    """
+    return {name: getattr(model, name) for name in dir(model)
+            if name.startswith('n') and name not in ('ntexdata', 'nbuffer')
+            and isinstance(getattr(model, name), int)}
 
 
 @dataclass(frozen=True)
@@ -151,6 +244,14 @@ class StepResult:
     instability: str | None = None
 
 
+@dataclass(frozen=True)
+class PreparedParam:
+    """A value and the model compiled for it, not yet in force (`ParamEnv.prepare_param`)."""
+
+    value: float
+    model: mujoco.MjModel
+
+
 def check_action(action, action_dim: int) -> tuple[np.ndarray | None, str | None]:
     """Validate an action: a finite vector of the right length, clipped to [-1, 1].
 
@@ -184,6 +285,8 @@ class ParamEnv:
         model = self._physics.model
         self.layout = ObservationLayout.from_model(model.ptr)
         self.actuator_names = tuple(model.id2name(i, 'actuator') for i in range(model.nu))
+        self._writer = _ModelWriter(model.ptr)   # apply_prepared's (binding it takes ~1 ms)
+        self._structure = structure_of(model.ptr)
         self.step_count = 0
         self._reset_physics()
 
@@ -220,7 +323,7 @@ class ParamEnv:
 
     @property
     def physics(self):
-        """The dm_control Physics in force (rebuilt on a parameter swap)."""
+        """The dm_control Physics in force (`set_param` makes a new one, `apply_prepared` not)."""
         return self._physics
 
     def joint_positions(self) -> np.ndarray:
@@ -276,8 +379,36 @@ class ParamEnv:
         physics = build_physics(self.spec, value)
         _copy_state(self._physics.data, physics)
         self._physics = physics
+        self._writer = _ModelWriter(physics.model.ptr)
         self._task = _make_task(self.spec, value, self._random)
         self._value = value
+
+    def prepare_param(self, value: float) -> PreparedParam:
+        """Compile the model of `value` without touching this env (safe on another thread).
+
+        The slow half of a live swap (2-5 ms, see `build_model`); the sim node
+        runs it on a worker thread, so that its control loop never waits for it.
+        """
+        value = float(value)
+        self._require_valid(value)
+        model = build_model(self.spec, value)
+        if structure_of(model) != self._structure:   # the edit changed more than values
+            raise ValueError(f'{self.spec.param_name}={value:g} changes the structure of the '
+                             f'{self.spec.domain} model: it cannot be swapped in place')
+        return PreparedParam(value, model)
+
+    def apply_prepared(self, prepared: PreparedParam) -> None:
+        """Put a prepared value into force at a step boundary, keeping the simulator state.
+
+        The fast half (~0.2 ms): the new model is written into the live one
+        in place and the derived quantities recomputed; the physics, its data
+        and the state stay. The trajectory is bit-identical to `set_param`'s
+        (test_swap_physics.py checks every family).
+        """
+        self._writer.write(prepared.model)
+        self._physics.forward()
+        self._task = _make_task(self.spec, prepared.value, self._random)
+        self._value = prepared.value
 
     def copy_state_from(self, other: 'ParamEnv') -> None:
         """Take another env's simulator state and step count (same family, any value).

@@ -41,7 +41,6 @@ if __name__ == '__main__' or os.path.basename(sys.argv[0]) == 'sim_node':
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -54,6 +53,8 @@ from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
 from sim_node.protocol import (check_reset_request, KEEP_STREAM, loop_problem,
                                parse_command, RecentRises, SEED_MAX)
+from sim_node.stepper import MODES, PublishedState, SimStepper, StepOutcome
+from sim_node.swaps import SwapQueue
 from zeus_ros.loop_spin import create_loop_subscription, LoopDeadline
 from zeus_ros.ros_util import describe as _describe
 from zeus_ros.ros_util import (accept_integers_for_doubles, declare_double,
@@ -62,7 +63,6 @@ from zeus_ros.ros_util import (accept_integers_for_doubles, declare_double,
                                set_stamp, stamp_ns, ThrottledWarnings, TickLateness,
                                unknown_overrides, UnknownParameters)
 
-MODES = ('lockstep', 'realtime')
 # What rclpy declares on every node.
 RCLPY_PARAMETERS = ('use_sim_time', 'start_type_description_service')
 # The realtime tick sleeps its last millisecond instead of waiting on messages:
@@ -71,7 +71,7 @@ TICK_SLEEP_LEAD_S = 0.001
 
 
 class SimNode(Node):
-    """Thin ROS shell around `ParamEnv`."""
+    """Thin ROS adapter around `SimStepper`: messages, parameters and the reset service."""
 
     def __init__(self):
         # Undeclared names then reach validate_parameters_callback, which answers
@@ -82,33 +82,20 @@ class SimNode(Node):
         self.add_on_set_parameters_callback(self.validate_parameters_callback)
         self.add_post_set_parameters_callback(self.apply_parameters_callback)
 
-        self.stream_seed = self._param('seed')   # where the current stream started
-        self.env = ParamEnv(self.spec.name, self._param(self.spec.param_name),
-                            seed=self.stream_seed)
-        self.dt_ns = int(round(self.env.control_timestep * 1e9))
-        self.tick = 0            # published states since start; the sim clock is tick * dt
-        self.episode = 0
-        self.pending_value: float | None = None
-        self.pending_seed: int | None = None
-        self.awaited_ns: int | None = None
-        self.awaited_since = 0.0
-        self.latest_action = np.zeros(self.env.action_dim)
-        self.latest_action_time = -np.inf
-        self.latest_action_stamp = -1   # realtime: the state the latest command answers
-        # Totals since start; the diagnostics level reads their recent rises.
-        self.counters = {'rejected': 0, 'stale': 0, 'timeouts': 0, 'instabilities': 0,
-                         'steps': 0, 'answered': 0, 'late_ticks': 0}
-        self.recent = RecentRises()
+        seed = self._param('seed')
+        self.env = ParamEnv(self.spec.name, self._param(self.spec.param_name), seed=seed)
+        self.swaps = SwapQueue(self.env.prepare_param)   # builds swapped physics off the loop
+        self.stepper = SimStepper(self.env, self.publish_state, self.swaps, seed=seed)
+        self.recent = RecentRises()   # the diagnostics level reads the counters' recent rises
         self.warnings = ThrottledWarnings(self.get_logger())
         self.step_rate = RateMeter()  # steps/s; latency = state published -> command in
-        self._create_interfaces()
         self.tick_lateness = TickLateness()  # realtime: tick start - scheduled time
+        self._create_interfaces()
         self._configure_stepping()
-        self.env.reset(seed=self.stream_seed)
         self.get_logger().info(
             f'{self.spec.name}: {self.spec.param_name}={self.env.param_value:g}, '
-            f'mode={self._param("mode")}, control period {self.env.control_timestep:g} s')
-        self.publish_state(reward=0.0, truncated=False)
+            f'mode={self.stepper.mode}, control period {self.env.control_timestep:g} s')
+        self.stepper.start()
 
     def _create_interfaces(self) -> None:
         self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
@@ -119,6 +106,10 @@ class SimNode(Node):
         self.create_service(Reset, '~/reset', self.reset_callback)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(1.0, self.diagnostics_callback)
+
+    def destroy_node(self):
+        self.swaps.close()
+        super().destroy_node()
 
     # -- parameters -----------------------------------------------------------
     def _declare_parameters(self) -> None:
@@ -141,7 +132,8 @@ class SimNode(Node):
             'Seconds without a (matching) command before a zero action is applied.',
             floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)]))
         declare_double(self, self.spec.param_name, self.spec.default, _describe(
-            f'{self.spec.description} Live swap: takes effect at the next step.',
+            f'{self.spec.description} Live swap: takes effect at a step boundary once its '
+            'model is compiled (a few ms; lockstep: the next step).',
             floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi)]))
         declare_thread_priority(self)
         unknown = unknown_overrides(self)
@@ -166,6 +158,8 @@ class SimNode(Node):
     def validate_parameters_callback(self, params: list[Parameter]) -> SetParametersResult:
         for param in params:
             reason = self._parameter_problem(param)
+            if reason is None and param.name == self.spec.param_name:
+                reason = self.stepper.swap_refusal(param.value)   # too many swaps waiting
             if reason is not None:
                 return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
@@ -184,118 +178,64 @@ class SimNode(Node):
     def apply_parameters_callback(self, params: list[Parameter]) -> None:
         for param in params:
             if param.name == self.spec.param_name:
-                self.pending_value = float(param.value)
+                self.stepper.request_swap(float(param.value))
             elif param.name == 'seed':
-                self.pending_seed = int(param.value)
+                self.stepper.pending_seed = int(param.value)
             elif param.name in ('mode', 'real_time_factor', 'command_timeout'):
                 self._configure_stepping()
 
     def _configure_stepping(self) -> None:
-        # Cached for the per-step callbacks (a parameter lookup per message adds up).
-        self.mode = self._param('mode')
-        self.command_timeout = self._param('command_timeout')
-        self.tick_period = self.env.control_timestep / self._param('real_time_factor')
-        self.next_tick = time.monotonic() + self.tick_period
+        self.stepper.configure(self._param('mode'), self._param('command_timeout'),
+                               self._param('real_time_factor'), time.monotonic())
         self.tick_lateness.restart()
 
     def loop_deadline(self) -> LoopDeadline | None:
         """Return when the node must act without a message (see zeus_ros.loop_spin)."""
-        if self.mode == 'realtime':
-            return LoopDeadline(self.next_tick, self.realtime_tick_callback, TICK_SLEEP_LEAD_S)
-        if self.awaited_ns is not None:
-            return LoopDeadline(self.awaited_since + self.command_timeout,
-                                self.lockstep_timeout_callback)
-        return None
+        when = self.stepper.deadline()
+        if when is None:
+            return None
+        lead = TICK_SLEEP_LEAD_S if self.stepper.mode == 'realtime' else 0.0
+        return LoopDeadline(when, self.deadline_callback, lead)
 
     # -- stepping -------------------------------------------------------------
     def command_callback(self, msg: JointState) -> None:
         action, reason = parse_command(msg.name, msg.effort, self.env.actuator_names)
+        self._report(self.stepper.on_command(stamp_ns(msg.header), action, time.monotonic()))
         if reason is not None:
-            self.counters['rejected'] += 1
             self.warnings.warn('rejected', f'rejected command ({reason}); applying zero action '
-                                   f'[{self.counters["rejected"]} rejected so far]')
-            action = np.zeros(self.env.action_dim)
-        if self.mode == 'realtime':
-            self.latest_action, self.latest_action_time = action, time.monotonic()
-            self.latest_action_stamp = stamp_ns(msg.header)
-            return
-        if stamp_ns(msg.header) != self.awaited_ns:
-            self.counters['stale'] += 1
-            return
-        self.step_rate.record(time.monotonic() - self.awaited_since)
-        self.counters['answered'] += 1
-        self.advance(action)
+                                   f'[{self.stepper.counters["rejected"]} rejected so far]')
 
-    def lockstep_timeout_callback(self) -> None:
-        self.counters['timeouts'] += 1
-        self.warnings.warn('timeout', f'no command within {self.command_timeout} s; '
-                              'applying zero action')
-        self.advance(np.zeros(self.env.action_dim))
+    def deadline_callback(self) -> None:
+        self._report(self.stepper.on_deadline(time.monotonic()))
 
-    def realtime_tick_callback(self) -> None:
-        now = time.monotonic()
-        # Ticks stay on an absolute schedule (no drift); a tick more than a
-        # period late is a missed deadline, and the schedule restarts from now.
-        answered = self.awaited_ns is None or self.latest_action_stamp == self.awaited_ns
-        self.tick_lateness.record(now - self.next_tick, self.tick_period, answered)
-        self.counters['answered'] += int(answered)
-        self.counters['late_ticks'] += int(now - self.next_tick > self.tick_period)
-        self.next_tick += self.tick_period
-        if self.next_tick <= now:
-            self.next_tick = now + self.tick_period
-        age = now - self.latest_action_time
-        fresh = age <= self.command_timeout
-        self.step_rate.record(age if fresh else 0.0)  # latency here: age of the command used
-        self.advance(self.latest_action if fresh else np.zeros(self.env.action_dim))
-
-    def advance(self, action: np.ndarray) -> None:
-        """Apply a pending swap, step once, publish; start the next episode at the end."""
-        self.counters['steps'] += 1
-        self._apply_pending_swap(f'episode {self.episode} step {self.env.step_count}')
-        result = self.env.step(action)
-        if result.instability is not None:
-            self.counters['instabilities'] += 1
-            self.get_logger().warning(f'MuJoCo instability ({result.instability}); '
-                                      'episode reset')
-            self._start_episode()
-            return
-        self.publish_state(result.reward, result.truncated, result.terminal,
-                           applied_action=result.applied_action)
-        if result.truncated or result.terminal:
-            self._start_episode()
-
-    def _apply_pending_swap(self, where: str) -> None:
-        if self.pending_value is not None and self.pending_value != self.env.param_value:
-            old = self.env.param_value
-            self.env.set_param(self.pending_value)
+    def _report(self, outcome: StepOutcome) -> None:
+        """Feed the meters and the log with what the stepper did."""
+        if outcome.latency_s is not None:
+            self.step_rate.record(outcome.latency_s)
+        if outcome.tick_late_s is not None:
+            self.tick_lateness.record(outcome.tick_late_s, self.stepper.tick_period,
+                                      outcome.answered)
+        if outcome.timed_out:
+            self.warnings.warn('timeout', f'no command within {self.stepper.command_timeout} s;'
+                                          ' applying zero action')
+        for swap in outcome.swaps:
             self.get_logger().info(
-                f'{self.spec.param_name}: {old:g} -> {self.env.param_value:g} at {where}')
-        self.pending_value = None
+                f'{self.spec.param_name}: {swap.old:g} -> {swap.new:g} at {swap.where}')
+        if outcome.instability is not None:
+            self.get_logger().warning(f'MuJoCo instability ({outcome.instability}); '
+                                      'episode reset')
 
-    def _start_episode(self) -> None:
-        """Begin the next episode: pending swap, pending seed (else the stream goes on), step 0."""
-        self.episode += 1
-        self._apply_pending_swap(f'the start of episode {self.episode}')
-        seed, self.pending_seed = self.pending_seed, None
-        if seed is not None:
-            self.stream_seed = seed
-        self.env.reset(seed=seed)
-        self.publish_state(reward=0.0, truncated=False)
-
-    def publish_state(self, reward: float, truncated: bool, terminal: bool = False,
-                      applied_action: np.ndarray | None = None) -> None:
-        self.tick += 1
-        stamp = self.tick * self.dt_ns
+    def publish_state(self, state: PublishedState) -> None:
         joint_state = JointState(name=list(self.env.joint_names),
-                                 position=self.env.joint_positions().tolist(),
-                                 velocity=self.env.joint_velocities().tolist())
-        set_stamp(joint_state.header, stamp)
-        step = StepInfo(episode=self.episode, step=self.env.step_count, reward=float(reward),
-                        terminal=bool(terminal), truncated=bool(truncated),
-                        applied_action=[] if applied_action is None
-                        else applied_action.tolist(),
+                                 position=state.positions.tolist(),
+                                 velocity=state.velocities.tolist())
+        set_stamp(joint_state.header, state.stamp_ns)
+        step = StepInfo(episode=state.episode, step=state.step, reward=state.reward,
+                        terminal=state.terminal, truncated=state.truncated,
+                        applied_action=[] if state.applied_action is None
+                        else state.applied_action.tolist(),
                         family=self.spec.name, param_names=[self.spec.param_name],
-                        param_values=[self.env.param_value])
+                        param_values=[state.param_value])
         step.header = joint_state.header
         clock = Clock()
         clock.clock = joint_state.header.stamp
@@ -303,26 +243,32 @@ class SimNode(Node):
         self.step_pub.publish(step)
         self.joint_pub.publish(joint_state)
         self.clock_pub.publish(clock)
-        ends_episode = truncated or terminal
-        self.awaited_ns = None if ends_episode else stamp
-        self.awaited_since = time.monotonic()
 
     # -- service ----------------------------------------------------------------
     def reset_callback(self, request: Reset.Request, response: Reset.Response):
         names, values = list(request.param_names), list(request.param_values)
-        problem = (check_reset_request(request.seed, names, values, self.spec)
-                   or self._set_for_reset(request.seed, names, values))
+        problem = check_reset_request(request.seed, names, values, self.spec)
+        superseded = ()
+        if problem is None:
+            # The request's value replaces any still waiting: they never take effect.
+            superseded = self.swaps.clear() if names else ()
+            problem = self._set_for_reset(request.seed, names, values)
         if problem is not None:
             self.warnings.warn('reset', f'reset refused: {problem}')
             response.success, response.message = False, problem
             return response
-        restarts = self.pending_seed is not None
-        self._start_episode()
-        stream = (f'stream restarted at seed {self.stream_seed}' if restarts
-                  else f'stream of seed {self.stream_seed} continued')
-        response.success, response.episode = True, self.episode
-        response.message = (f'episode {self.episode}: {stream}, '
+        restarts = self.stepper.pending_seed is not None
+        self._report(self.stepper.reset())   # waits for queued values' models (ms each)
+        stepper = self.stepper
+        stream = (f'stream restarted at seed {stepper.stream_seed}' if restarts
+                  else f'stream of seed {stepper.stream_seed} continued')
+        response.success, response.episode = True, stepper.episode
+        response.message = (f'episode {stepper.episode}: {stream}, '
                             f'{self.spec.param_name}={self.env.param_value:g}')
+        if superseded:
+            response.message += (f' ({self.spec.param_name} '
+                                 f'{", ".join(f"{v:g}" for v in superseded)} set before it '
+                                 'and not yet in force: superseded)')
         self.get_logger().info(f'reset to {response.message}')
         return response
 
@@ -338,11 +284,12 @@ class SimNode(Node):
         return None if result.successful else result.reason
 
     def diagnostics_callback(self) -> None:
-        recent = self.recent.rises(time.monotonic(), self.counters)
-        values = dict(self.counters, episode=self.episode, step=self.env.step_count,
-                      mode=self._param('mode'), **{self.spec.param_name: self.env.param_value},
-                      window_s=self.recent.window_s, recent_steps=recent['steps'],
-                      recent_answered=recent['answered'],
+        counters = self.stepper.counters
+        recent = self.recent.rises(time.monotonic(), counters)
+        values = dict(counters, episode=self.stepper.episode, step=self.env.step_count,
+                      mode=self.stepper.mode, **{self.spec.param_name: self.env.param_value},
+                      swaps_waiting=len(self.swaps), window_s=self.recent.window_s,
+                      recent_steps=recent['steps'], recent_answered=recent['answered'],
                       **self.step_rate.report(), **self.tick_lateness.report())
         self.diagnostics_pub.publish(diagnostic_array(
             self, 'simulation', self.spec.name, values,

@@ -1,11 +1,18 @@
 """The nodes' stamp bookkeeping rebuilds exactly the training window (no ROS graph)."""
 
+import math
+
 import numpy as np
+import pytest
 from sim_node.env import ParamEnv
 from zeus_ros.core.window import ContextWindow
-from zeus_ros.pairing import StateContextPairer, TransitionAssembler
+from zeus_ros.pairing import (BadMessage, DUPLICATE, JUMP, NEXT, observation_from_message,
+                              OUTLIER, RecentCounts, RESTART, StampFollower,
+                              StateContextPairer, TransitionAssembler)
 
 K = 5
+NS = 1_000_000_000
+DT = 25_000_000   # the walker's control period
 
 
 def episode_messages(steps=12, seed=0):
@@ -63,9 +70,9 @@ def test_assembler_clears_on_episode_start_and_on_a_missed_state():
     assembler.add_joint_state(stamp + 100, *joint_state)
     assembler.add_step_info(stamp + 100, 1, 0, 0.0, [], False)
     assert window.fill == 0 and assembler.gaps == 1
-    assembler.add_joint_state(stamp, *joint_state)  # late, out of order: dropped
-    assert assembler.add_step_info(stamp, 0, 6, 0.0, np.zeros(6), False) is None
-    assert assembler.dropped == 1
+    assembler.add_joint_state(stamp + 100, *joint_state)  # the same stamp again: dropped
+    assert assembler.add_step_info(stamp + 100, 1, 0, 0.0, [], False) is None
+    assert assembler.dropped == 1 and assembler.restarts == 0
 
 
 def test_pairer_answers_newest_pair_and_times_out_blind():
@@ -80,9 +87,155 @@ def test_pairer_answers_newest_pair_and_times_out_blind():
     assert stamp == 20 and got_obs[0] == 1 and got_latent[0] == 2
     assert pairer.dropped == 1                      # state 10 skipped: a newer pair was in
     assert pairer.ready() is None
-    pairer.add_context(10, latent)                  # older than what was answered: ignored
+    pairer.add_context(10, latent)                  # its state was skipped: pairs with nothing
     assert pairer.ready() is None
     pairer.add_state(30, obs, now=1.0)
     assert pairer.expired(now=1.4) is None
     assert pairer.expired(now=1.6) == 30
     assert pairer.expired(now=5.0) is None
+
+
+def feed(assembler, messages, offset=0):
+    """Each state's StepInfo then JointState, stamps shifted by `offset`; the records."""
+    records = []
+    for stamp, joint_state, info in messages:
+        assembler.add_step_info(stamp + offset, *info)
+        records.append(assembler.add_joint_state(stamp + offset, *joint_state))
+    return records
+
+
+def assert_window_is(window, reference):
+    for got, want in zip(window.arrays(), reference.arrays(), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_stamp_follower_takes_a_clock_going_back_and_ignores_one_stamp_far_ahead():
+    follower = StampFollower(max_jump_ns=10 * NS)
+    seen = [(s, follower.observe(s * NS)) for s in
+            (1, 2, 2, 1000, 3, 1001, 4, 5, 15, 26, 0.5, 0.525)]
+    assert seen == [(1, NEXT), (2, NEXT), (2, DUPLICATE),
+                    (1000, OUTLIER),   # alone, far ahead: the clock stays at 2
+                    (3, NEXT),
+                    (1001, JUMP),      # continues the 1000 of before: a clock that jumped
+                    (4, RESTART),      # and the old one goes on: the clock went back
+                    (5, NEXT), (15, NEXT),
+                    (26, OUTLIER),     # 11 s ahead: more than the bound
+                    (0.5, RESTART),    # a restarted sim
+                    (0.525, NEXT)]
+    assert follower.high == 0.525 * NS
+
+
+def test_assembler_follows_a_restarted_sim():
+    env, messages, reference = episode_messages()
+    window = ContextWindow(K, env.obs_dim, env.action_dim)
+    events = []
+    assembler = TransitionAssembler(window, env.layout, on_clock=lambda *e: events.append(e))
+    feed(assembler, messages, offset=500 * NS)   # the first sim ran for 500 s
+    assert window.fill == K
+    records = feed(assembler, messages)          # killed and restarted: its clock starts again
+    assert all(record is not None for record in records)
+    assert events == [(RESTART, messages[0][0], messages[-1][0] + 500 * NS)]
+    assert assembler.restarts == 1 and assembler.gaps == 0
+    assert_window_is(window, reference)
+
+
+def test_assembler_ignores_one_state_stamped_far_ahead():
+    env, messages, reference = episode_messages()
+    window = ContextWindow(K, env.obs_dim, env.action_dim)
+    assembler = TransitionAssembler(window, env.layout)
+    feed(assembler, messages[:6])
+    stamp, joint_state, info = messages[6]
+    assert feed(assembler, [(stamp + 1000 * NS, joint_state, info)]) == [None]
+    assembler.add_joint_state(stamp + 2000 * NS, *joint_state)   # a half, never completed
+    records = feed(assembler, messages[6:])
+    assert all(record is not None for record in records)
+    assert_window_is(window, reference)
+    assert assembler.outliers == 1 and assembler.restarts == 0 and assembler.gaps == 0
+    assert assembler.dropped == 1                                  # the lone half
+
+
+def test_assembler_recovers_from_a_stray_state_stamped_in_the_past():
+    env, messages, reference = episode_messages()
+    window = ContextWindow(K, env.obs_dim, env.action_dim)
+    assembler = TransitionAssembler(window, env.layout)
+    feed(assembler, messages[:6], offset=500 * NS)
+    stamp, joint_state, info = messages[6]
+    assert feed(assembler, [(stamp, joint_state, info)])[0] is not None   # taken as a restart
+    # The sim goes on from its own clock: a jump back to it, and the window refills.
+    records = feed(assembler, messages[6:], offset=500 * NS)
+    assert all(record is not None for record in records)
+    assert assembler.restarts == 2 and window.fill == K
+
+
+def test_bad_joint_states_are_refused_with_a_reason_and_leave_nothing_behind():
+    env, messages, _ = episode_messages()
+    names, positions, velocities = messages[0][1]
+    layout = env.layout
+    for bad, reason in (((['a', 'b'], [0.0, 0.0], [0.0, 0.0]), 'lacks joints'),
+                        ((names, positions[:-1], velocities), 'positions'),
+                        ((names, positions, []), 'velocities'),
+                        ((names, [math.nan, *positions[1:]], velocities), 'non-finite')):
+        with pytest.raises(BadMessage, match=reason):
+            observation_from_message(layout, *bad)
+    assembler = TransitionAssembler(ContextWindow(K, env.obs_dim, env.action_dim), layout)
+    assembler.add_step_info(1, *messages[0][2])
+    with pytest.raises(BadMessage):
+        assembler.add_joint_state(1, ['a'], [0.0], [0.0])
+    assert assembler.add_joint_state(1, *messages[0][1]) is not None
+    _, _, (episode, step, reward, action, truncated) = messages[1]
+    for bad in ((episode, step, reward, action[:-1], truncated),
+                (episode, step, math.inf, action, truncated),
+                (episode, step, reward, [math.nan, *action[1:]], truncated)):
+        with pytest.raises(BadMessage):
+            assembler.add_step_info(2, *bad)
+    assembler.add_joint_state(2, *messages[1][1])
+    assert assembler.add_step_info(2, *messages[1][2]) is not None and assembler.window.fill == 1
+
+
+def answer(pairer, stamp, now=0.0):
+    pairer.add_state(stamp, np.zeros(3), now)
+    pairer.add_context(stamp, np.ones(2, dtype=np.float32))
+    return pairer.ready()
+
+
+@pytest.mark.parametrize('first', ['state', 'context'])
+def test_pairer_follows_a_restarted_sim_whichever_message_comes_first(first):
+    events = []
+    pairer = StateContextPairer(context_timeout=0.5, on_clock=lambda *e: events.append(e))
+    for i in range(1, 4):
+        assert answer(pairer, 500 * NS + i * DT)[0] == 500 * NS + i * DT
+    obs, latent = np.full(3, 7.0), np.full(2, 3.0, dtype=np.float32)
+    if first == 'state':
+        pairer.add_state(DT, obs, now=1.0)
+        pairer.add_context(DT, latent)
+    else:
+        pairer.add_context(DT, latent)
+        pairer.add_state(DT, obs, now=1.0)
+    stamp, got_obs, got_latent = pairer.ready()
+    assert stamp == DT and got_obs[0] == 7.0 and got_latent[0] == 3.0
+    assert answer(pairer, 2 * DT)[0] == 2 * DT
+    assert sorted(e[0] for e in events) == ['context restart', 'state restart']
+    assert pairer.restarts == 1
+
+
+def test_pairer_keeps_answering_after_states_stamped_far_ahead():
+    pairer = StateContextPairer(context_timeout=0.5)
+    assert answer(pairer, DT)[0] == DT
+    assert pairer.add_state(DT + 1000 * NS, np.zeros(3), now=1.0) == OUTLIER
+    assert pairer.next_expiry() is None and pairer.expired(now=5.0) is None
+    assert answer(pairer, 2 * DT, now=5.0)[0] == 2 * DT
+    # Two in a row look like a clock that jumped; the sim's next state undoes it.
+    assert pairer.add_state(2000 * NS, np.zeros(3), now=6.0) == OUTLIER
+    assert pairer.add_state(2000 * NS + DT, np.zeros(3), now=6.0) == JUMP
+    assert answer(pairer, 3 * DT, now=6.1)[0] == 3 * DT
+    assert pairer.outliers == 2 and pairer.restarts == 2
+
+
+def test_recent_counts_forget_a_gap_after_the_window():
+    recent = RecentCounts(window_s=10.0)
+    assert recent.problem(1.0, {'gaps': 0, 'dropped': 0}) is None
+    assert recent.problem(2.0, {'gaps': 1, 'dropped': 0}) == '1 gaps in the last 10 s'
+    for now in range(3, 12):
+        assert recent.problem(float(now), {'gaps': 1, 'dropped': 0}) is not None
+    assert recent.problem(12.0, {'gaps': 1, 'dropped': 0}) is None
+    assert recent.rises(13.0, {'gaps': 1, 'dropped': 4}) == {'gaps': 0, 'dropped': 4}

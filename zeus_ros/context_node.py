@@ -9,25 +9,39 @@ It does not subscribe /joint_commands: StepInfo carries the action MuJoCo
 actually applied (after clipping, or zeros after a rejected or late command),
 which a command on the wire cannot tell, and one subscription fewer is one
 executor wake-up fewer per control step.
+
+Bad input does not stop it: a joint state or StepInfo that does not fit the
+weights is ignored, a restarted sim (its clock starts again) is followed with
+an empty window (`zeus_ros.pairing.StampFollower`), and a non-finite latent
+from psi is replaced by the empty window's zero latent; each is counted,
+warned (throttled) and reported in /diagnostics, whose level reflects the
+last 10 s. A sim of another family (StepInfo.family) is refused: the node
+exits with code 1 and one line (checked again after the sim clock restarts).
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
+import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
-from diagnostic_msgs.msg import DiagnosticArray
 
 from zeus_ros.checkpoint import CheckpointError
 from zeus_ros.core.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
 from zeus_ros.loop_spin import create_loop_subscription
-from zeus_ros.pairing import layout_from_metadata, TransitionAssembler
+from zeus_ros.pairing import (BadMessage, forget_received, layout_from_metadata, OUTLIER,
+                              RecentCounts, TransitionAssembler)
 from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
-                               set_stamp, stamp_ns)
+                               set_stamp, stamp_ns, ThrottledWarnings)
+
+# Largest magnitude a float32 field (Context.param_estimates) holds.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class GraphMismatch(RuntimeError):
@@ -47,6 +61,62 @@ def load_weights_parameter(node: Node) -> InferenceModel:
     return model
 
 
+def check_family(sim_family: str, model: InferenceModel) -> None:
+    """Refuse (GraphMismatch) a sim that runs another family than the weights'."""
+    if sim_family != model.family:
+        raise GraphMismatch(f'the sim runs {sim_family!r} but the weights are for '
+                            f'{model.family!r}')
+
+
+def describe_clock_event(event: str, stamp: int, previous: int | None) -> str:
+    """One line for a warning about the sim clock (see zeus_ros.pairing.StampFollower)."""
+    jump = '' if previous is None else f' ({(stamp - previous) / 1e9:+.3f} s)'
+    if event.endswith(OUTLIER):
+        return (f'{event}: ignored a message stamped {stamp / 1e9:.3f} s, far ahead of '
+                f'the sim clock{jump}')
+    return (f'{event}: the sim clock went to {stamp / 1e9:.3f} s{jump}, a restarted sim? '
+            'Starting over')
+
+
+class ContextGuard:
+    """psi's latent and the decoded estimate, never non-finite.
+
+    A non-finite latent is replaced by the empty window's: the zero latent (as
+    defined in zeus_ros.core.window, whatever psi computes of an empty mask)
+    and its estimate. A non-finite estimate of a finite latent is replaced by
+    that same prior estimate. If the prior is NaN, the weights carry no
+    decoder, and NaN is what Context.param_estimates means by 'no estimate'.
+    """
+
+    def __init__(self, model: InferenceModel):
+        self.model = model
+        self.zero_latent = np.zeros(model.context_dim, dtype=np.float32)
+        prior = self._estimate(self.zero_latent)
+        self.prior_estimate = math.nan if math.isinf(prior) else prior
+        self.non_finite_latents = self.non_finite_estimates = 0
+
+    def _estimate(self, latent: np.ndarray) -> float:
+        value = self.model.decode(latent)
+        # A float32 field would turn a larger float into inf (or refuse it).
+        return value if abs(value) <= FLOAT32_MAX or math.isnan(value) else math.inf
+
+    def context(self, rows: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float, str]:
+        """(latent, estimate, problem): problem is '' when nothing was replaced."""
+        latent = self.model.context(rows, mask)
+        if not np.all(np.isfinite(latent)):
+            self.non_finite_latents += 1
+            return self.zero_latent, self.prior_estimate, (
+                'psi gave a non-finite latent; published the zero latent instead')
+        estimate = self._estimate(latent)
+        if math.isinf(estimate) or (math.isnan(estimate)
+                                    and not math.isnan(self.prior_estimate)):
+            self.non_finite_estimates += 1
+            return latent, self.prior_estimate, (
+                f'the decoder gave {estimate}; published the prior estimate '
+                f'{self.prior_estimate:g} instead')
+        return latent, estimate, ''
+
+
 class ContextNode(Node):
     """Thin ROS shell around `TransitionAssembler` and the checkpoint's psi."""
 
@@ -55,11 +125,16 @@ class ContextNode(Node):
         self.model = load_weights_parameter(self)
         self.window = ContextWindow(self.model.k, self.model.obs_dim, self.model.action_dim)
         self.assembler = TransitionAssembler(self.window,
-                                             layout_from_metadata(self.model.metadata))
+                                             layout_from_metadata(self.model.metadata),
+                                             on_clock=self.clock_event)
+        self.guard = ContextGuard(self.model)
         self.param_name = self.model.metadata['param_name']
         self.family_checked = False
+        self.bad_messages = {'joint_state': 0, 'step_info': 0}
         self.received_at: dict[int, float] = {}
         self.context_rate = RateMeter()    # latency: first message of a stamp -> context out
+        self.recent = RecentCounts()
+        self.warnings = ThrottledWarnings(self.get_logger())
 
         self.context_pub = self.create_publisher(Context, '/zeus/context', LOOP_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -69,52 +144,71 @@ class ContextNode(Node):
         self.create_timer(1.0, self.diagnostics_callback)
 
     def joint_state_callback(self, msg: JointState) -> None:
-        stamp = self._note(msg.header)
         try:
-            record = self.assembler.add_joint_state(stamp, msg.name, msg.position,
-                                                    msg.velocity)
-        except ValueError as error:
-            raise GraphMismatch(f'joint states do not fit the {self.model.family} weights: '
-                                f'{error}') from None
+            record = self.assembler.add_joint_state(stamp_ns(msg.header), msg.name,
+                                                    msg.position, msg.velocity)
+        except BadMessage as error:
+            # A stray publisher must not stop the controller: the sim's own
+            # states are checked by the family of its StepInfo.
+            self.bad_messages['joint_state'] += 1
+            self.warnings.warn('joint_state', f'ignored a joint state that does not fit the '
+                                              f'{self.model.family} weights: {error}')
+            return
+        self._note(msg.header)
         self._publish_for(record)
 
     def step_callback(self, msg: StepInfo) -> None:
         if not self.family_checked:
-            if msg.family != self.model.family:
-                raise GraphMismatch(f'the sim runs {msg.family!r} but the weights are for '
-                                    f'{self.model.family!r}')
+            check_family(msg.family, self.model)
             self.family_checked = True
-        stamp = self._note(msg.header)
-        record = self.assembler.add_step_info(stamp, msg.episode, msg.step, msg.reward,
-                                              msg.applied_action, msg.truncated)
+        try:
+            record = self.assembler.add_step_info(stamp_ns(msg.header), msg.episode, msg.step,
+                                                  msg.reward, msg.applied_action,
+                                                  msg.truncated)
+        except BadMessage as error:
+            self.bad_messages['step_info'] += 1
+            self.warnings.warn('step_info', f'ignored a StepInfo: {error}')
+            return
+        self._note(msg.header)
         self._publish_for(record)
 
-    def _note(self, header) -> int:
-        stamp = stamp_ns(header)
-        self.received_at.setdefault(stamp, time.monotonic())
-        return stamp
+    def clock_event(self, event: str, stamp: int, previous: int | None) -> None:
+        """Warn of a restart, jump or ignored stamp of the sim clock (the assembler calls it)."""
+        self.warnings.warn(event, describe_clock_event(event, stamp, previous))
+        if event != OUTLIER:
+            # Another clock may be another sim: check its family again.
+            self.family_checked = False
+            self.received_at = {s: t for s, t in self.received_at.items() if s == stamp}
+
+    def _note(self, header) -> None:
+        self.received_at.setdefault(stamp_ns(header), time.monotonic())
 
     def _publish_for(self, record) -> None:
         if record is None:
             return
-        rows, mask = self.window.arrays()
-        latent = self.model.context(rows, mask)
+        latent, estimate, problem = self.guard.context(*self.window.arrays())
+        if problem:
+            self.warnings.warn('non_finite', problem)
         msg = Context(latent=latent.tolist(), window_fill=self.window.fill,
-                      param_names=[self.param_name],
-                      param_estimates=[self.model.decode(latent)])
+                      param_names=[self.param_name], param_estimates=[estimate])
         set_stamp(msg.header, record.stamp_ns)
         self.context_pub.publish(msg)
-        first_seen = self.received_at.pop(record.stamp_ns, time.monotonic())
+        first_seen = self.received_at.get(record.stamp_ns, time.monotonic())
         self.context_rate.record(time.monotonic() - first_seen)
-        for stale in [s for s in self.received_at if s < record.stamp_ns]:
-            del self.received_at[stale]
+        forget_received(self.received_at, record.stamp_ns)
 
     def diagnostics_callback(self) -> None:
+        counts = dict(dropped=self.assembler.dropped, gaps=self.assembler.gaps,
+                      clock_restarts=self.assembler.restarts,
+                      stamp_outliers=self.assembler.outliers,
+                      bad_joint_states=self.bad_messages['joint_state'],
+                      bad_step_infos=self.bad_messages['step_info'],
+                      non_finite_latents=self.guard.non_finite_latents,
+                      non_finite_estimates=self.guard.non_finite_estimates)
         values = dict(self.context_rate.report(), window_fill=self.window.fill,
-                      window_k=self.window.k, dropped=self.assembler.dropped,
-                      gaps=self.assembler.gaps)
-        problem = 'messages dropped or transitions missed' if (
-            self.assembler.dropped or self.assembler.gaps) else None
+                      window_k=self.window.k, **counts)
+        # The level says what happened lately, the values count since start.
+        problem = self.recent.problem(time.monotonic(), counts)
         self.diagnostics_pub.publish(diagnostic_array(self, 'context', self.model.family,
                                                       values, problem))
 

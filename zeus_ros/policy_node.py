@@ -7,6 +7,13 @@ as soon as the state arrives, while the context node works on its latent. It
 answers the newest complete pair (in realtime mode older states are skipped);
 a state whose context has not come within `context_timeout` gets a zero action
 and a warning.
+
+It acts only once the sim's first StepInfo has shown the weights' family (a
+sim of another family ends the node with code 1 and one line). A joint state
+that does not fit the weights is ignored, a restarted sim (its clock starts
+again) is followed (`zeus_ros.pairing.StampFollower`), and a non-finite
+action becomes the zero action; each is counted, warned (throttled) and
+reported in /diagnostics.
 """
 
 from __future__ import annotations
@@ -19,12 +26,15 @@ import numpy as np
 from rcl_interfaces.msg import FloatingPointRange
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from zeus_msgs.msg import Context
+from zeus_msgs.msg import Context, StepInfo
 
 from zeus_ros.checkpoint import CheckpointError
-from zeus_ros.context_node import GraphMismatch, load_weights_parameter
+from zeus_ros.context_node import (check_family, describe_clock_event, GraphMismatch,
+                                   load_weights_parameter)
 from zeus_ros.loop_spin import create_loop_subscription, LoopDeadline
-from zeus_ros.pairing import layout_from_metadata, StateContextPairer
+from zeus_ros.pairing import (BadMessage, forget_received, layout_from_metadata,
+                              observation_from_message, OUTLIER, RecentCounts,
+                              StateContextPairer)
 from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
 
@@ -41,11 +51,18 @@ class PolicyNode(Node):
         self.layout = layout_from_metadata(self.model.metadata)
         self.actuator_names = list(self.model.metadata['action_layout']['actuator_names'])
         self.zero_action = np.zeros(self.model.action_dim)
-        self.pairer = StateContextPairer(timeout)
+        self.pairer = StateContextPairer(timeout, on_clock=self.clock_event)
         self.received_at: dict[int, float] = {}
-        self.counters = {'zero_actions': 0, 'non_finite_actions': 0, 'bad_contexts': 0}
+        self.counters = {'zero_actions': 0, 'non_finite_actions': 0, 'bad_contexts': 0,
+                         'bad_joint_states': 0}
         self.action_rate = RateMeter()   # latency: state received -> command published
+        self.recent = RecentCounts()
         self.warnings = ThrottledWarnings(self.get_logger())
+        # The family is checked once, on the first StepInfo, by the executor
+        # thread; the subscription then goes, so it costs nothing per step.
+        self.family_checked = False
+        self.family_sub = self.create_subscription(StepInfo, '/zeus/step',
+                                                   self.family_callback, LOOP_QOS)
 
         self.command_pub = self.create_publisher(JointState, '/joint_commands', LOOP_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -60,13 +77,25 @@ class PolicyNode(Node):
             if param.name == 'context_timeout':
                 self.pairer.context_timeout = float(param.value)
 
+    def family_callback(self, msg: StepInfo) -> None:
+        if self.family_checked:
+            return  # taken before the subscription went
+        check_family(msg.family, self.model)
+        self.family_checked = True
+        self.destroy_subscription(self.family_sub)
+        self.get_logger().info(f'the sim runs {msg.family}: controlling')
+        self.act_on_ready()
+
     def joint_state_callback(self, msg: JointState) -> None:
         try:
-            obs = self.layout.observation_from_joint_state(msg.name, msg.position,
-                                                           msg.velocity)
-        except ValueError as error:
-            raise GraphMismatch(f'joint states do not fit the {self.model.family} weights: '
-                                f'{error}') from None
+            obs = observation_from_message(self.layout, msg.name, msg.position, msg.velocity)
+        except BadMessage as error:
+            # A stray publisher must not stop the controller (the sim's own
+            # states are vouched for by the family check).
+            self.counters['bad_joint_states'] += 1
+            self.warnings.warn('joint_state', f'ignored a joint state that does not fit the '
+                                              f'{self.model.family} weights: {error}')
+            return
         stamp = stamp_ns(msg.header)
         now = time.monotonic()
         self.received_at[stamp] = now
@@ -83,7 +112,15 @@ class PolicyNode(Node):
         self.pairer.add_context(stamp_ns(msg.header), latent)
         self.act_on_ready()
 
+    def clock_event(self, event: str, stamp: int, previous: int | None) -> None:
+        """Warn of a restart, jump or ignored stamp of a clock (the pairer calls it)."""
+        self.warnings.warn(event, describe_clock_event(event, stamp, previous))
+        if event.startswith('state') and not event.endswith(OUTLIER):
+            self.received_at = {s: t for s, t in self.received_at.items() if s == stamp}
+
     def act_on_ready(self) -> None:
+        if not self.family_checked:
+            return  # nothing goes to a sim of unknown family; states wait, then expire
         ready = self.pairer.ready()
         if ready is None:
             return
@@ -105,6 +142,9 @@ class PolicyNode(Node):
         stamp = self.pairer.expired(time.monotonic())
         if stamp is None:
             return
+        if not self.family_checked:
+            self.warnings.warn('family', 'no StepInfo from the sim yet: not answering')
+            return
         self.counters['zero_actions'] += 1
         self.warnings.warn('timeout', f'no context within {self.pairer.context_timeout} s; '
                                       'sending a zero action')
@@ -114,16 +154,18 @@ class PolicyNode(Node):
         msg = JointState(name=self.actuator_names, effort=action.tolist())
         set_stamp(msg.header, stamp)
         self.command_pub.publish(msg)
-        received = self.received_at.pop(stamp, time.monotonic())
+        received = self.received_at.get(stamp, time.monotonic())
         self.action_rate.record(time.monotonic() - received)
-        for old in [s for s in self.received_at if s < stamp]:
-            del self.received_at[old]
+        forget_received(self.received_at, stamp)
 
     def diagnostics_callback(self) -> None:
+        # Skipped states are not a problem (realtime mode answers the newest).
+        counts = dict(self.counters, clock_restarts=self.pairer.restarts,
+                      stamp_outliers=self.pairer.outliers)
         values = dict(self.action_rate.report(), dropped_states=self.pairer.dropped,
-                      **self.counters)
-        problem = 'zero or non-finite actions sent' if (
-            self.counters['zero_actions'] or self.counters['non_finite_actions']) else None
+                      family_checked=self.family_checked, **counts)
+        # The level says what happened lately, the values count since start.
+        problem = self.recent.problem(time.monotonic(), counts)
         self.diagnostics_pub.publish(diagnostic_array(self, 'policy', self.model.family,
                                                       values, problem))
 

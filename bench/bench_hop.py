@@ -5,7 +5,7 @@
 A JointState (the walker's 9 joints) goes back and forth between this process
 and an echo process, both on the same transport and QoS as the control loop.
 Measured twice in one run: both sides on rclpy's SingleThreadedExecutor, and
-both sides taking messages straight from a wait set as `zeus_ros.loop_spin`
+both sides taking messages straight from a wait set as `zeus_ros.ros.loop_spin`
 does. A lockstep control step crosses three such hops (sim -> context ->
 policy -> sim), so 1 / (3 x hop) bounds the lockstep rate of the three
 processes before any simulation or inference.
@@ -25,7 +25,7 @@ import rclpy  # noqa: E402
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
-from zeus_ros.ros_util import LOOP_QOS  # noqa: E402
+from zeus_ros.ros.util import LOOP_QOS  # noqa: E402
 
 NAMES = [f'joint_{i}' for i in range(9)]
 

@@ -42,12 +42,12 @@ from sim_node.env import ParamEnv  # noqa: E402
 from zeus_msgs.msg import StepInfo  # noqa: E402
 from zeus_msgs.srv import Reset  # noqa: E402
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
-from zeus_ros.checkpoint import load_metadata  # noqa: E402
-from zeus_ros.core.inference import InferenceModel  # noqa: E402
+from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
+from zeus_ros.deploy.inference import InferenceModel  # noqa: E402
 from zeus_ros.core.window import ContextWindow  # noqa: E402
-from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
+from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
-from zeus_ros.ros_util import call_service, LOOP_QOS, reset_episode, stamp_ns  # noqa: E402
+from zeus_ros.ros.util import call_service, LOOP_QOS, reset_episode, stamp_ns  # noqa: E402
 
 
 def in_process_rate(weights: Path, steps: int, samples: int = 5) -> float:

@@ -55,10 +55,10 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sim_node.families import get_family  # noqa: E402
 from zeus_msgs.msg import StepInfo  # noqa: E402
 from zeus_ros.bringup import node_commands, NODES, parse_args as bringup_args  # noqa: E402
-from zeus_ros.checkpoint import load_metadata  # noqa: E402
-from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
+from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
+from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
-from zeus_ros.ros_util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
+from zeus_ros.ros.util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 NODE_NAMES = tuple(name for name, _ in NODES)
@@ -878,7 +878,7 @@ def run_soak(cfg: SoakConfig) -> SoakResult:
 
 def main(argv=None) -> int:
     cfg, json_path = parse_args(argv)
-    from zeus_ros.checkpoint import CheckpointError
+    from zeus_ros.deploy.checkpoint import CheckpointError
     try:
         result = run_soak(cfg)
     except (SoakError, CheckpointError) as error:

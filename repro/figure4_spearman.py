@@ -35,7 +35,7 @@ import torch
 
 from sim_node.env import ParamEnv
 from sim_node.families import get_family
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
 
 FAMILY = 'cheetah-run-v0'

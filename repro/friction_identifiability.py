@@ -32,7 +32,7 @@ from torch import nn
 from figure4_spearman import windows_for
 from sim_node.env import ParamEnv
 from sim_node.families import get_family
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
 
 RESULTS = Path(__file__).resolve().parent / 'results'

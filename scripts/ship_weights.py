@@ -22,7 +22,7 @@ import numpy as np
 
 from sim_node.families import get_family, SPLITS
 from zeus_ros.adaptation import build_report, ReportConfig
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.evaluate import evaluate
 
 SHIPPED = ('model.safetensors', 'metadata.json')

@@ -26,7 +26,10 @@ from dm_control.suite import cheetah, finger, walker
 import mujoco
 import numpy as np
 
-from sim_node.families import DOMAIN_MODELS, FamilySpec, get_family
+from sim_node.families import domain_model, FamilySpec, get_family
+from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout
+
+__all__ = ['check_action', 'ObservationLayout', 'ParamEnv', 'StepResult', 'layout_from_model']
 
 EPISODE_STEPS = 1000
 
@@ -35,9 +38,6 @@ CONTROL_TIMESTEP = {'walker': 0.025, 'cheetah': 0.01, 'finger': 0.02}
 
 _PHYSICS = {'walker': walker.Physics, 'cheetah': cheetah.Physics, 'finger': finger.Physics}
 
-# Horizontal position is dropped from the observation: the tasks are invariant
-# to it, and it grows without bound while the robot moves.
-_DROPPED_JOINTS = frozenset({'rootx'})
 
 
 class CheetahTargetVelocity(cheetah.Cheetah):
@@ -65,7 +65,7 @@ def _make_task(spec: FamilySpec, value: float, random: np.random.RandomState):
 
 def _edited_model(spec: FamilySpec, value: float) -> tuple[str, dict, float | None]:
     """Return the family's MJCF with `value` put in (families.py's edit), assets, total mass."""
-    xml, assets = DOMAIN_MODELS[spec.domain]()
+    xml, assets = domain_model(spec.domain)
     xml = xml.decode() if isinstance(xml, bytes) else xml
     root = ElementTree.fromstring(spec.edit_xml(xml, value))
     # The compiler's `settotalmass` is deprecated in MuJoCo 3.x; do the same
@@ -109,7 +109,7 @@ def _low_res_assets(domain: str) -> dict:
 
     (The main MJCF of these domains has no texture; one there would only compile slower.)
     """
-    _, assets = DOMAIN_MODELS[domain]()
+    _, assets = domain_model(domain)
     low_res = {}
     for name, content in assets.items():
         if name.endswith('.xml'):
@@ -171,62 +171,22 @@ def structure_of(model: mujoco.MjModel) -> dict:
             and isinstance(getattr(model, name), int)}
 
 
-@dataclass(frozen=True)
-class ObservationLayout:
-    """How the policy's observation is made from joint positions and velocities.
-
-    Per joint, in model order: its position, or (cos, sin) for a hinge without
-    limits (a free rotation, which would otherwise wrap), or nothing for the
-    dropped horizontal position; then every joint velocity.
-    """
-
-    joint_names: tuple[str, ...]
-    position_encoding: tuple[str, ...]  # 'raw', 'angle' (cos, sin) or 'drop'
-
-    @classmethod
-    def from_model(cls, model: mujoco.MjModel) -> 'ObservationLayout':
-        """Read the layout off a model whose joints are all hinges or slides."""
-        names, encodings = [], []
-        for j in range(model.njnt):
-            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
-            jtype = int(model.jnt_type[j])
-            if jtype not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
-                raise ValueError(f'joint {name!r} is not a hinge or slide joint')
-            names.append(name)
-            if name in _DROPPED_JOINTS:
-                encodings.append('drop')
-            elif jtype == mujoco.mjtJoint.mjJNT_HINGE and not model.jnt_limited[j]:
-                encodings.append('angle')
-            else:
-                encodings.append('raw')
-        return cls(tuple(names), tuple(encodings))
-
-    @property
-    def size(self) -> int:
-        """Length of the observation vector."""
-        width = {'raw': 1, 'angle': 2, 'drop': 0}
-        return sum(width[e] for e in self.position_encoding) + len(self.joint_names)
-
-    def observation(self, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray:
-        """Observation from joint positions and velocities in `joint_names` order."""
-        parts = []
-        for encoding, q in zip(self.position_encoding, positions, strict=True):
-            if encoding == 'raw':
-                parts.append(q)
-            elif encoding == 'angle':
-                parts.extend((math.cos(q), math.sin(q)))
-        return np.concatenate([np.asarray(parts, dtype=np.float64),
-                               np.asarray(velocities, dtype=np.float64)])
-
-    def observation_from_joint_state(self, names, positions, velocities) -> np.ndarray:
-        """Observation from a JointState's fields; the names may be in any order."""
-        index = {name: i for i, name in enumerate(names)}
-        missing = [n for n in self.joint_names if n not in index]
-        if missing:
-            raise ValueError(f'joint state lacks joints {missing}')
-        order = [index[n] for n in self.joint_names]
-        return self.observation(np.asarray(positions, dtype=np.float64)[order],
-                                np.asarray(velocities, dtype=np.float64)[order])
+def layout_from_model(model: mujoco.MjModel) -> ObservationLayout:
+    """Read the observation layout off a model whose joints are all hinges or slides."""
+    names, encodings = [], []
+    for j in range(model.njnt):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
+        jtype = int(model.jnt_type[j])
+        if jtype not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            raise ValueError(f'joint {name!r} is not a hinge or slide joint')
+        names.append(name)
+        if name in DROPPED_JOINTS:
+            encodings.append('drop')
+        elif jtype == mujoco.mjtJoint.mjJNT_HINGE and not model.jnt_limited[j]:
+            encodings.append('angle')
+        else:
+            encodings.append('raw')
+    return ObservationLayout(tuple(names), tuple(encodings))
 
 
 @dataclass(frozen=True)
@@ -252,22 +212,6 @@ class PreparedParam:
     model: mujoco.MjModel
 
 
-def check_action(action, action_dim: int) -> tuple[np.ndarray | None, str | None]:
-    """Validate an action: a finite vector of the right length, clipped to [-1, 1].
-
-    Returns (action, None) when usable, (None, reason) when not.
-    """
-    try:
-        array = np.asarray(action, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        return None, 'action is not numeric'
-    if array.shape != (action_dim,):
-        return None, f'action has {array.size} values, expected {action_dim}'
-    if not np.all(np.isfinite(array)):
-        return None, 'action contains NaN or inf'
-    return np.clip(array, -1.0, 1.0), None
-
-
 class ParamEnv:
     """A dm_control task whose physical parameter can change at a step boundary."""
 
@@ -283,7 +227,7 @@ class ParamEnv:
         self._task = _make_task(self.spec, self._value, self._random)
         self._n_sub_steps = int(round(self.control_timestep / self._physics.model.opt.timestep))
         model = self._physics.model
-        self.layout = ObservationLayout.from_model(model.ptr)
+        self.layout = layout_from_model(model.ptr)
         self.actuator_names = tuple(model.id2name(i, 'actuator') for i in range(model.nu))
         self._writer = _ModelWriter(model.ptr)   # apply_prepared's (binding it takes ~1 ms)
         self._structure = structure_of(model.ptr)

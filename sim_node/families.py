@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from typing import Callable
 import xml.etree.ElementTree as ElementTree
 
-from dm_control.suite import cheetah, finger, walker
 
 SPLITS = ('train', 'interpolation', 'extrapolation')
 
@@ -187,11 +186,18 @@ FAMILIES: dict[str, FamilySpec] = {
     )
 }
 
-DOMAIN_MODELS: dict[str, Callable[[], tuple[str, dict]]] = {
-    'walker': walker.get_model_and_assets,
-    'cheetah': cheetah.get_model_and_assets,
-    'finger': finger.get_model_and_assets,
-}
+
+def domain_model(domain: str) -> tuple[str, dict]:
+    """Return the dm_control model XML and assets of a domain (walker, cheetah, finger).
+
+    dm_control is imported here, not at module level: the family tables are
+    read by processes that must not load MuJoCo (the controller nodes).
+    """
+    from dm_control.suite import cheetah, finger, walker
+    loaders = {'walker': walker.get_model_and_assets,
+               'cheetah': cheetah.get_model_and_assets,
+               'finger': finger.get_model_and_assets}
+    return loaders[domain]()
 
 
 def get_family(name: str) -> FamilySpec:

@@ -5,7 +5,7 @@ In `lockstep` mode every published state waits for the command that answers
 its stamp (zero action after `command_timeout`); in `realtime` mode the node
 steps on an absolute tick schedule at the control rate times
 `real_time_factor`, on the latest command. Both the tick and the lockstep
-watchdog are the loop deadline that `zeus_ros.loop_spin.spin_loop` waits for.
+watchdog are the loop deadline that `zeus_ros.ros.loop_spin.spin_loop` waits for.
 The family's physical parameter is a ROS parameter: setting it puts the new
 physics into force at the next step boundary, the robot's state carried over.
 
@@ -44,6 +44,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_parameters
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import StepInfo
@@ -55,9 +56,9 @@ from sim_node.protocol import (check_reset_request, KEEP_STREAM, loop_problem,
                                parse_command, RecentRises, SEED_MAX)
 from sim_node.stepper import MODES, PublishedState, SimStepper, StepOutcome
 from sim_node.swaps import SwapQueue
-from zeus_ros.loop_spin import create_loop_subscription, LoopDeadline
-from zeus_ros.ros_util import describe as _describe
-from zeus_ros.ros_util import (accept_integers_for_doubles, declare_double,
+from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
+from zeus_ros.ros.util import describe as _describe
+from zeus_ros.ros.util import (accept_integers_for_doubles, declare_double,
                                declare_thread_priority, diagnostic_array,
                                LOOP_QOS as STATE_QOS, parameter_names, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings, TickLateness,
@@ -65,6 +66,11 @@ from zeus_ros.ros_util import (accept_integers_for_doubles, declare_double,
 
 # What rclpy declares on every node.
 RCLPY_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+# ~/reset keeps up to 1000 waiting requests, as rclpy's parameter services do:
+# the services default keeps 10, and a burst of 200 resets from one client got
+# 10 answers, the rest dropped without a word (issue #17.4). A client sending
+# bursts needs as deep a history itself (qos_profile_parameters).
+RESET_QOS = qos_profile_parameters
 # The realtime tick sleeps its last millisecond instead of waiting on messages:
 # that wait returns up to ~1 ms late (p99) on this machine, a sleep 0.4 ms.
 TICK_SLEEP_LEAD_S = 0.001
@@ -103,7 +109,7 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(Clock, '/clock', STATE_QOS)
         create_loop_subscription(self, JointState, '/joint_commands', self.command_callback,
                                  STATE_QOS)
-        self.create_service(Reset, '~/reset', self.reset_callback)
+        self.create_service(Reset, '~/reset', self.reset_callback, qos_profile=RESET_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(1.0, self.diagnostics_callback)
 
@@ -190,7 +196,7 @@ class SimNode(Node):
         self.tick_lateness.restart()
 
     def loop_deadline(self) -> LoopDeadline | None:
-        """Return when the node must act without a message (see zeus_ros.loop_spin)."""
+        """Return when the node must act without a message (see zeus_ros.ros.loop_spin)."""
         when = self.stepper.deadline()
         if when is None:
             return None

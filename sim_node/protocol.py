@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from sim_node.env import check_action
+from sim_node.layout import check_action
 from sim_node.families import FamilySpec
 
 NANOSECONDS = 1_000_000_000

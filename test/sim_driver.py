@@ -9,7 +9,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
-from zeus_ros.ros_util import call_service, reset_episode, stamp_ns as stamp_key
+from zeus_ros.ros.util import call_service, reset_episode, stamp_ns as stamp_key
 
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 WALKER_ACTUATORS = ('right_hip', 'right_knee', 'right_ankle', 'left_hip', 'left_knee',

@@ -10,7 +10,7 @@ import pytest
 from sim_node.env import ParamEnv
 from zeus_ros.adaptation import (build_report, OtherPhysicsWindow, r_squared, ReportConfig,
                                  steps_to_cover, ZeroedContext)
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.evaluate import run_episode
 
 REPO = Path(__file__).resolve().parents[1]

@@ -10,10 +10,10 @@ from safetensors.torch import load_file, save_file
 import torch
 
 from sim_node.env import ParamEnv
-from zeus_ros.checkpoint import (CheckpointError, load_training_checkpoint, MODEL_FILE,
+from zeus_ros.deploy.checkpoint import (CheckpointError, load_training_checkpoint, MODEL_FILE,
                                  save_checkpoint, sha256_file, STATE_FILE)
 from zeus_ros.train import family_config as make_config
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.replay import ReplayBuffer
 from zeus_ros.core.window import ContextWindow
 from zeus_ros.train import env_info, make_agent

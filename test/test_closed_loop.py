@@ -7,7 +7,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.evaluate import run_episode
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.inference import InferenceModel
 
 FAMILY = 'walker-walk-v0'
 WALKER_WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
@@ -145,3 +145,46 @@ def test_context_node_refuses_a_sim_of_another_family(loop, spawn, small_checkpo
     assert ("the sim runs 'cheetah-run-v0' but the weights are for 'walker-walk-v0'"
             in proc.output()) or ('do not fit the walker-walk-v0 weights: joint state lacks'
                                   in proc.output())
+
+
+@pytest.fixture(scope='session')
+def method_checkpoints(tmp_path_factory):
+    """Train a tiny checkpoint of a method a few real steps on walker-walk-v0, once."""
+    import subprocess
+    import sys
+    made = {}
+
+    def get(method):
+        if method not in made:
+            out = tmp_path_factory.mktemp(method) / 'run'
+            subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
+                            '--method', method, '--steps', '120', '--out', str(out),
+                            '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
+                            '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
+                            'batch_size_per_task=4', 'replay_capacity=2000'],
+                           check=True, cwd=REPO, capture_output=True)
+            made[method] = out / 'checkpoint'
+        return made[method]
+    return get
+
+
+@pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'cadm', 'up-osi',
+                                    'hyperdynamics', 'zeus-no-context-loss'])
+def test_every_methods_checkpoint_runs_through_the_nodes_bit_exactly(loop, ros_node,
+                                                                      method_checkpoints,
+                                                                      method):
+    """The nodes are method-agnostic: each method's ROS episode is its in-process one."""
+    weights = method_checkpoints(method)
+    seed, friction = 3, 1.1
+    expected = run_episode(InferenceModel.load(weights), FAMILY, friction, seed)
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    _, driver = loop(weights=weights)
+    wait_loop_running(ros_node, steps)
+    driver.reset(seed=seed, params={'friction': friction})
+    episode = driver.steps[driver.current].episode
+    assert spin_until(ros_node, lambda: any((s.episode == episode and s.truncated)
+                                            or s.episode > episode for s in steps[-5:]),
+                      120.0), 'the episode did not finish through ROS'
+    rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
+    assert len(rewards) == 1000
+    np.testing.assert_array_equal(rewards, expected.rewards)

@@ -17,7 +17,7 @@ from sim_node.env import ParamEnv
 from test_closed_loop import collect, FAMILY, start_node, wait_loop_running, WALKER_WEIGHTS
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.context_node import ContextGuard
-from zeus_ros.ros_util import set_stamp, stamp_ns
+from zeus_ros.ros.util import set_stamp, stamp_ns
 
 SLIPPERY_WEIGHTS = REPO / 'weights' / 'walker-walk-slippery-zeus'
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -196,7 +196,7 @@ class StubModel:
     def __init__(self, latent, decode):
         self.latent, self.decode = np.asarray(latent, dtype=np.float32), decode
 
-    def context(self, rows, mask):
+    def context(self, rows, mask, true_param=None):
         return self.latent
 
 

@@ -7,7 +7,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 from zeus_msgs.msg import Context, StepInfo
 from zeus_msgs.srv import Reset
-from zeus_ros.ros_util import call_service
+from zeus_ros.ros.util import call_service
 
 QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from sim_node.env import ParamEnv
 from zeus_ros.core.window import ContextWindow
-from zeus_ros.pairing import (BadMessage, DUPLICATE, JUMP, NEXT, observation_from_message,
+from zeus_ros.ros.pairing import (BadMessage, DUPLICATE, JUMP, NEXT, observation_from_message,
                               OUTLIER, RecentCounts, RESTART, StampFollower,
                               StateContextPairer, TransitionAssembler)
 

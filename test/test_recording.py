@@ -18,7 +18,7 @@ from sensor_msgs.msg import JointState
 import yaml
 from zeus_msgs.msg import StepInfo
 from zeus_ros.recording import BagRecorder, BagWriter, TopicSpec
-from zeus_ros.ros_util import LOOP_QOS
+from zeus_ros.ros.util import LOOP_QOS
 
 INFINITE = (9223372036, 854775807)   # RMW_DURATION_INFINITE as sec, nsec
 
@@ -165,7 +165,7 @@ def test_a_bag_is_written_once(tmp_path):
 def test_recorder_stores_what_the_publishers_offer(ros_node, tmp_path):
     """Over DDS: every message recorded, and the QoS discovery reports (a best-effort one too)."""
     import rclpy
-    from zeus_ros.loop_spin import spin_in_background
+    from zeus_ros.ros.loop_spin import spin_in_background
     context = rclpy.Context()
     rclpy.init(context=context)
     recorder_node = rclpy.create_node('test_recorder', context=context)

@@ -14,7 +14,7 @@ from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros import demo
 from zeus_ros.recording import BagWriter, read_episode
-from zeus_ros.ros_util import LOOP_QOS
+from zeus_ros.ros.util import LOOP_QOS
 
 STEP_NS = 25_000_000
 

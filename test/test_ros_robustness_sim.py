@@ -18,7 +18,7 @@ from sim_node.env import ParamEnv
 from sim_node.families import get_family
 from sim_node.protocol import check_reset_request, loop_problem, RecentRises, SEED_MAX
 from zeus_msgs.srv import Reset
-from zeus_ros.ros_util import call_service
+from zeus_ros.ros.util import call_service
 
 FAMILY = 'walker-walk-v0'
 

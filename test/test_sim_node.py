@@ -210,7 +210,7 @@ def test_a_bad_startup_parameter_ends_the_node_with_the_reason(spawn, param, val
 
 
 def test_tick_lateness_counts_both_kinds_of_missed_deadline():
-    from zeus_ros.ros_util import TickLateness
+    from zeus_ros.ros.util import TickLateness
     stats = TickLateness()
     period = 0.01
     for late, answered in ((0.0001, True), (0.0004, True), (0.0002, False), (0.012, True)):

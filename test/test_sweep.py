@@ -77,5 +77,5 @@ def test_killed_sweep_resumes_its_trials_and_gathers_results(tmp_path):
 
 
 def _timestep(run: Path) -> int:
-    from zeus_ros.checkpoint import load_metadata
+    from zeus_ros.deploy.checkpoint import load_metadata
     return int(load_metadata(run / 'checkpoint')['steps']['timestep'])

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from zeus_ros import evaluate, train
-from zeus_ros.checkpoint import CheckpointError
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.checkpoint import CheckpointError
+from zeus_ros.deploy.inference import InferenceModel
 
 FAMILY = 'finger-spin-v0'
 TINY = ['hidden_dim=32', 'context_dim=6', 'feature_dim=8', 'encoder_hidden=16',

@@ -12,7 +12,7 @@ from conftest import INSTALL_BIN, installed_exe, REPO, spin_until
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import parameter_value_to_python
 import yaml
-from zeus_ros.ros_util import call_service
+from zeus_ros.ros.util import call_service
 
 
 def declared_executables():

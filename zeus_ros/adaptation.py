@@ -37,8 +37,8 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from sim_node.env import ParamEnv
-from zeus_ros.checkpoint import CheckpointError
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.checkpoint import CheckpointError
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.evaluate import EpisodeProbe, run_episode
 
 HELD_OUT = ('interpolation', 'extrapolation')

@@ -41,7 +41,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def node_commands(args: argparse.Namespace) -> dict[str, list[str]]:
     """Build each node's command line (python -m, so no install layout is assumed)."""
     # Checked here, so that bad weights give one clear line, not three node failures.
-    from zeus_ros.checkpoint import load_metadata
+    from zeus_ros.deploy.checkpoint import load_metadata
     weights = str(Path(args.weights).resolve())
     family = args.family or load_metadata(weights)['family']
     sim_params = {'family': family, 'mode': args.mode, 'seed': args.seed,
@@ -90,7 +90,7 @@ class Bringup:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from zeus_ros.checkpoint import CheckpointError
+    from zeus_ros.deploy.checkpoint import CheckpointError
     try:
         commands = node_commands(args)
     except CheckpointError as error:

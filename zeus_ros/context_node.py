@@ -12,7 +12,7 @@ executor wake-up fewer per control step.
 
 Bad input does not stop it: a joint state or StepInfo that does not fit the
 weights is ignored, a restarted sim (its clock starts again) is followed with
-an empty window (`zeus_ros.pairing.StampFollower`), and a non-finite latent
+an empty window (`zeus_ros.ros.pairing.StampFollower`), and a non-finite latent
 from psi is replaced by the empty window's zero latent; each is counted,
 warned (throttled) and reported in /diagnostics, whose level reflects the
 last 10 s. A sim of another family (StepInfo.family) is refused: the node
@@ -31,51 +31,19 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
 
-from zeus_ros.checkpoint import CheckpointError
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.checkpoint import CheckpointError
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
-from zeus_ros.loop_spin import create_loop_subscription
-from zeus_ros.pairing import (BadMessage, forget_received, layout_from_metadata, OUTLIER,
+from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
+                                     load_weights_parameter)
+from zeus_ros.ros.loop_spin import create_loop_subscription
+from zeus_ros.ros.pairing import (BadMessage, forget_received, layout_from_metadata, OUTLIER,
                               RecentCounts, TransitionAssembler)
-from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
+from zeus_ros.ros.util import (diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
 
 # Largest magnitude a float32 field (Context.param_estimates) holds.
 FLOAT32_MAX = float(np.finfo(np.float32).max)
-
-
-class GraphMismatch(RuntimeError):
-    """The running simulation is not the one the weights were trained for."""
-
-
-def load_weights_parameter(node: Node) -> InferenceModel:
-    """Declare the read-only `weights` parameter and load the checkpoint it names."""
-    weights = node.declare_parameter('weights', '', describe(
-        'Checkpoint directory (safetensors + metadata.json); read-only.',
-        read_only=True)).value
-    if not weights:
-        raise CheckpointError('parameter "weights" is empty: pass -p weights:=<checkpoint>')
-    model = InferenceModel.load(weights)
-    node.get_logger().info(f'{model.family} weights from {weights}: k={model.k}, '
-                           f'latent {model.context_dim}')
-    return model
-
-
-def check_family(sim_family: str, model: InferenceModel) -> None:
-    """Refuse (GraphMismatch) a sim that runs another family than the weights'."""
-    if sim_family != model.family:
-        raise GraphMismatch(f'the sim runs {sim_family!r} but the weights are for '
-                            f'{model.family!r}')
-
-
-def describe_clock_event(event: str, stamp: int, previous: int | None) -> str:
-    """One line for a warning about the sim clock (see zeus_ros.pairing.StampFollower)."""
-    jump = '' if previous is None else f' ({(stamp - previous) / 1e9:+.3f} s)'
-    if event.endswith(OUTLIER):
-        return (f'{event}: ignored a message stamped {stamp / 1e9:.3f} s, far ahead of '
-                f'the sim clock{jump}')
-    return (f'{event}: the sim clock went to {stamp / 1e9:.3f} s{jump}, a restarted sim? '
-            'Starting over')
 
 
 class ContextGuard:
@@ -100,9 +68,10 @@ class ContextGuard:
         # A float32 field would turn a larger float into inf (or refuse it).
         return value if abs(value) <= FLOAT32_MAX or math.isnan(value) else math.inf
 
-    def context(self, rows: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float, str]:
+    def context(self, rows: np.ndarray, mask: np.ndarray,
+                true_param: float | None = None) -> tuple[np.ndarray, float, str]:
         """(latent, estimate, problem): problem is '' when nothing was replaced."""
-        latent = self.model.context(rows, mask)
+        latent = self.model.context(rows, mask, true_param)
         if not np.all(np.isfinite(latent)):
             self.non_finite_latents += 1
             return self.zero_latent, self.prior_estimate, (
@@ -129,6 +98,9 @@ class ContextNode(Node):
                                              on_clock=self.clock_event)
         self.guard = ContextGuard(self.model)
         self.param_name = self.model.metadata['param_name']
+        # The sim's TRUE value (StepInfo.param_values): read only by privileged
+        # weights (oracle), which are defined as knowing it.
+        self.true_param = math.nan
         self.family_checked = False
         self.bad_messages = {'joint_state': 0, 'step_info': 0}
         self.received_at: dict[int, float] = {}
@@ -161,6 +133,8 @@ class ContextNode(Node):
         if not self.family_checked:
             check_family(msg.family, self.model)
             self.family_checked = True
+        if len(msg.param_values):
+            self.true_param = float(msg.param_values[0])
         try:
             record = self.assembler.add_step_info(stamp_ns(msg.header), msg.episode, msg.step,
                                                   msg.reward, msg.applied_action,
@@ -186,7 +160,8 @@ class ContextNode(Node):
     def _publish_for(self, record) -> None:
         if record is None:
             return
-        latent, estimate, problem = self.guard.context(*self.window.arrays())
+        true_param = self.true_param if self.model.needs_true_param else None
+        latent, estimate, problem = self.guard.context(*self.window.arrays(), true_param)
         if problem:
             self.warnings.warn('non_finite', problem)
         msg = Context(latent=latent.tolist(), window_fill=self.window.fill,

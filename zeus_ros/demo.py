@@ -56,11 +56,11 @@ from zeus_msgs.msg import Context, StepInfo  # noqa: E402
 from zeus_msgs.srv import Reset  # noqa: E402
 
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
-from zeus_ros.checkpoint import CheckpointError, load_metadata  # noqa: E402
-from zeus_ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
+from zeus_ros.deploy.checkpoint import CheckpointError, load_metadata  # noqa: E402
+from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
 from zeus_ros.recording import BagRecorder, RECORD_DEPTH, TopicSpec  # noqa: E402
-from zeus_ros.ros_util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
+from zeus_ros.ros.util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
 
 RECORDED_TOPICS = {
     '/joint_states': TopicSpec('sensor_msgs/msg/JointState', LOOP_QOS),

@@ -31,8 +31,8 @@ import numpy as np
 
 from sim_node.env import ParamEnv
 from sim_node.families import SPLITS
-from zeus_ros.checkpoint import CheckpointError
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.checkpoint import CheckpointError
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
 
 

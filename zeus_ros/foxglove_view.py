@@ -36,7 +36,7 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import Image, JointState
 from zeus_msgs.msg import Context, StepInfo
 
-from zeus_ros.ros_util import run_node
+from zeus_ros.ros.util import run_node
 
 # Never beyond this machine: the view has no authentication.
 HOST = '127.0.0.1'

@@ -11,7 +11,7 @@ and a warning.
 It acts only once the sim's first StepInfo has shown the weights' family (a
 sim of another family ends the node with code 1 and one line). A joint state
 that does not fit the weights is ignored, a restarted sim (its clock starts
-again) is followed (`zeus_ros.pairing.StampFollower`), and a non-finite
+again) is followed (`zeus_ros.ros.pairing.StampFollower`), and a non-finite
 action becomes the zero action; each is counted, warned (throttled) and
 reported in /diagnostics.
 """
@@ -28,14 +28,14 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
 
-from zeus_ros.checkpoint import CheckpointError
-from zeus_ros.context_node import (check_family, describe_clock_event, GraphMismatch,
-                                   load_weights_parameter)
-from zeus_ros.loop_spin import create_loop_subscription, LoopDeadline
-from zeus_ros.pairing import (BadMessage, forget_received, layout_from_metadata,
+from zeus_ros.deploy.checkpoint import CheckpointError
+from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
+                                     load_weights_parameter)
+from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
+from zeus_ros.ros.pairing import (BadMessage, forget_received, layout_from_metadata,
                               observation_from_message, OUTLIER, RecentCounts,
                               StateContextPairer)
-from zeus_ros.ros_util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
+from zeus_ros.ros.util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
 
 
@@ -134,7 +134,7 @@ class PolicyNode(Node):
         self.publish_command(stamp, np.clip(action, -1.0, 1.0))
 
     def loop_deadline(self) -> LoopDeadline | None:
-        """Return when the oldest waiting state's context times out (see zeus_ros.loop_spin)."""
+        """Return when the oldest waiting state's context times out (see ros.loop_spin)."""
         expiry = self.pairer.next_expiry()
         return None if expiry is None else LoopDeadline(expiry, self.timeout_callback)
 

@@ -31,7 +31,7 @@ from rclpy.duration import Infinite
 from rclpy.qos import HistoryPolicy, QoSProfile
 import yaml
 
-from zeus_ros.loop_spin import create_loop_subscription
+from zeus_ros.ros.loop_spin import create_loop_subscription
 
 _SEPARATOR = '=' * 80
 _PRIMITIVES = {'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16',

@@ -10,7 +10,7 @@ at random and do not update. Each task keeps its own `ContextWindow`, cleared
 at its episode boundaries; the replay buffer stores, with every transition,
 the window before s_t and the one after (see `zeus_ros.core.replay`).
 
-Writes into ``--out``: ``checkpoint/`` (see `zeus_ros.checkpoint`, replaced
+Writes into ``--out``: ``checkpoint/`` (see `zeus_ros.deploy.checkpoint`, replaced
 atomically every ``--checkpoint-every`` timesteps and at the end),
 ``train_log.csv`` (averaged update metrics and speed), ``eval_log.csv`` (one
 row per split and parameter value), ``episodes.csv`` and TensorBoard scalars
@@ -36,11 +36,11 @@ from tqdm import tqdm
 
 from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, SPLITS
-from zeus_ros.checkpoint import (CheckpointError, load_training_checkpoint,
+from zeus_ros.deploy.checkpoint import (CheckpointError, load_training_checkpoint,
                                  numpy_generator_state, restore_numpy_generator,
                                  save_checkpoint)
 from zeus_ros.core.agent import Agent, param_normaliser
-from zeus_ros.core.inference import InferenceModel
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.config import PROFILES, ZeusConfig, make_config
 from zeus_ros.core.methods import METHODS
 from zeus_ros.core.replay import ReplayBuffer

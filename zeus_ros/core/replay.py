@@ -139,7 +139,7 @@ class ReplayBuffer:
                       next_ctx_mask=next_mask)
         return Batch(**{n: torch.from_numpy(np.ascontiguousarray(v)) for n, v in arrays.items()})
 
-    # -- persistence (arrays only; used by zeus_ros.checkpoint) ------------
+    # -- persistence (arrays only; used by zeus_ros.deploy.checkpoint) ------------
     def state_arrays(self) -> dict[str, np.ndarray]:
         """Return the filled part of every array plus the add count, size and capacity."""
         n = self.size

@@ -23,8 +23,8 @@ import math
 import numpy as np
 import torch
 
-from zeus_ros.checkpoint import build_metadata, load_model
-from zeus_ros.metadata import CheckpointMetadata
+from zeus_ros.deploy.checkpoint import build_metadata, load_model
+from zeus_ros.deploy.metadata import CheckpointMetadata
 
 
 def _single_thread() -> None:

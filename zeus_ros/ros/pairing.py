@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from sim_node.env import ObservationLayout
+from sim_node.layout import ObservationLayout
 from zeus_ros.core.window import ContextWindow
 
 # Partial entries kept while their partner message is in flight.

@@ -21,7 +21,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sim_node.protocol import ns_to_stamp, stamp_to_ns
-from zeus_ros.loop_spin import spin_loop
+from zeus_ros.ros.loop_spin import spin_loop
 
 # Reliable, keep-last 10, volatile on every topic of the loop. Lockstep needs
 # reliability (a lost state or command stalls a step until the timeout and

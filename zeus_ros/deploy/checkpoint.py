@@ -39,7 +39,7 @@ from safetensors.torch import load_file, save_file
 import torch
 
 from zeus_ros.core.config import ZeusConfig
-from zeus_ros.metadata import CheckpointMetadata, MetadataError
+from zeus_ros.deploy.metadata import CheckpointMetadata, MetadataError
 
 FORMAT_VERSION = 1
 MODEL_FILE = 'model.safetensors'

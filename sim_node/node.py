@@ -38,6 +38,7 @@ if __name__ == '__main__' or os.path.basename(sys.argv[0]) == 'sim_node':
     for _signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(_signum, _exit_quietly)
 
+import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -50,6 +51,7 @@ from sensor_msgs.msg import JointState
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
 
+from sim_node.camera import CameraPublisher
 from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
 from sim_node.protocol import (check_reset_request, KEEP_STREAM, loop_problem,
@@ -102,6 +104,12 @@ class SimNode(Node):
             f'{self.spec.name}: {self.spec.param_name}={self.env.param_value:g}, '
             f'mode={self.stepper.mode}, control period {self.env.control_timestep:g} s')
         self.stepper.start()
+        # Held while the stepper changes the physics; the camera copies qpos under it
+        # and renders from its own copy, so stepping never waits on a frame.
+        self.physics_lock = threading.Lock()
+        self.camera = CameraPublisher(self, lambda: self.env.physics, self._param('camera_rate'),
+                                      lock=self.physics_lock,
+                                      get_stamp_ns=lambda: self.stepper.tick * self.stepper.dt_ns)
 
     def _create_interfaces(self) -> None:
         self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
@@ -114,6 +122,8 @@ class SimNode(Node):
         self.create_timer(1.0, self.diagnostics_callback)
 
     def destroy_node(self):
+        if hasattr(self, 'camera'):
+            self.camera.close()
         self.swaps.close()
         super().destroy_node()
 
@@ -137,6 +147,11 @@ class SimNode(Node):
         declare_double(self, 'command_timeout', 0.5, _describe(
             'Seconds without a (matching) command before a zero action is applied.',
             floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)]))
+        declare_double(self, 'camera_rate', 0.0, _describe(
+            'Frames per second on /camera/image_raw and /camera/camera_info, rendered '
+            'off-screen on a thread of their own; 0 = off (nothing created). Read-only.',
+            read_only=True,
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=60.0)]))
         declare_double(self, self.spec.param_name, self.spec.default, _describe(
             f'{self.spec.description} Live swap: takes effect at a step boundary once its '
             'model is compiled (a few ms; lockstep: the next step).',
@@ -206,13 +221,17 @@ class SimNode(Node):
     # -- stepping -------------------------------------------------------------
     def command_callback(self, msg: JointState) -> None:
         action, reason = parse_command(msg.name, msg.effort, self.env.actuator_names)
-        self._report(self.stepper.on_command(stamp_ns(msg.header), action, time.monotonic()))
+        with self.physics_lock:
+            outcome = self.stepper.on_command(stamp_ns(msg.header), action, time.monotonic())
+        self._report(outcome)
         if reason is not None:
             self.warnings.warn('rejected', f'rejected command ({reason}); applying zero action '
                                    f'[{self.stepper.counters["rejected"]} rejected so far]')
 
     def deadline_callback(self) -> None:
-        self._report(self.stepper.on_deadline(time.monotonic()))
+        with self.physics_lock:
+            outcome = self.stepper.on_deadline(time.monotonic())
+        self._report(outcome)
 
     def _report(self, outcome: StepOutcome) -> None:
         """Feed the meters and the log with what the stepper did."""
@@ -264,7 +283,9 @@ class SimNode(Node):
             response.success, response.message = False, problem
             return response
         restarts = self.stepper.pending_seed is not None
-        self._report(self.stepper.reset())   # waits for queued values' models (ms each)
+        with self.physics_lock:
+            outcome = self.stepper.reset()   # waits for queued values' models (ms each)
+        self._report(outcome)
         stepper = self.stepper
         stream = (f'stream restarted at seed {stepper.stream_seed}' if restarts
                   else f'stream of seed {stepper.stream_seed} continued')

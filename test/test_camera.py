@@ -262,3 +262,28 @@ if __name__ == '__main__':
     parser.add_argument('--family', default='walker-walk-v0')
     cli = parser.parse_args()
     camera_node(cli.rate, cli.family)
+
+
+def test_sim_node_serves_its_camera_when_asked_and_nothing_by_default(ros_node, spawn):
+    """`camera_rate` on the real sim node: frames of the robot while it steps in realtime."""
+    from conftest import installed_exe, spin_until
+    from zeus_msgs.msg import StepInfo
+    received = {'/camera/image_raw': [], '/camera/camera_info': [], STEPS_TOPIC: []}
+    _subscribe(ros_node, received)
+    steps = []
+    ros_node.create_subscription(StepInfo, '/zeus/step', steps.append, 100)
+    proc = spawn([installed_exe('sim_node'), '--ros-args', '-p', 'mode:=realtime',
+                  '-p', 'camera_rate:=4.0'], 'sim_node_camera')
+    images = received['/camera/image_raw']
+    assert spin_until(ros_node, lambda: len(images) >= 3, 90), proc.output()
+    msg = images[-1][1]
+    frame = np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.width, 3)
+    assert robot_mask(frame).mean() > 0.01
+    assert len(steps) > 10          # the loop kept stepping while it rendered
+    proc.stop()
+    plain = spawn([installed_exe('sim_node'), '--ros-args', '-p', 'mode:=realtime'],
+                  'sim_node_plain')
+    mark = len(steps)
+    assert spin_until(ros_node, lambda: len(steps) > mark + 20, 60), plain.output()
+    publishers = ros_node.get_publishers_info_by_topic('/camera/image_raw')
+    assert not [p for p in publishers if p.node_name == 'sim_node'], publishers

@@ -9,13 +9,17 @@ export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
 # A shell with the venv, the ROS env and the colcon install overlay.
 IN_WS := source scripts/ros_env.sh && source "$$ZEUS_VENV/bin/activate" && source install/setup.bash &&
 
-.PHONY: setup test demo lint bench clean
+.PHONY: setup test test-unit demo lint bench clean
 
 setup:
 	bash scripts/setup.sh
 
 test: setup
 	$(IN_WS) python -m pytest -q test
+
+# The ROS-free tests alone (a minute or so); `make test` runs these and the ros ones.
+test-unit: setup
+	$(IN_WS) python -m pytest -q -m unit test
 
 # The context-free reference runs beside the adaptive policy once its weights exist.
 DEMO_WEIGHTS ?= weights/walker-walk-v0-zeus

@@ -139,3 +139,19 @@ def small_checkpoint(tmp_path_factory):
                     '--steps', '300', '--out', str(out), '--eval-every', '0',
                     '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
     return out / 'checkpoint'
+
+
+# Fixtures that start processes or a DDS participant: a test using any of them
+# (directly or through another fixture) is a `ros` test, and so is every test of
+# a module that declares `pytestmark = pytest.mark.ros` (it starts its own
+# processes); every other test is a `unit` test.
+_ROS_FIXTURES = frozenset({'spawn', 'ros_node', 'rclpy_context', 'small_checkpoint'})
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark each test `ros` or `unit` (`pytest -m unit` runs the ROS-free ones)."""
+    for item in items:
+        if item.get_closest_marker('ros') is not None:
+            continue
+        uses = set(getattr(item, 'fixturenames', ()))
+        item.add_marker('ros' if uses & _ROS_FIXTURES else 'unit')

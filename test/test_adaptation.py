@@ -13,6 +13,8 @@ from zeus_ros.adaptation import (build_report, OtherPhysicsWindow, r_squared, Re
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.evaluate import run_episode
 
+pytestmark = pytest.mark.ros   # starts processes of its own
+
 REPO = Path(__file__).resolve().parents[1]
 FAMILY = 'walker-walk-slippery'
 QUICK = ReportConfig(episodes=1, max_steps=40, swap_step=20, swap_steps=40)

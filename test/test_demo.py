@@ -17,6 +17,8 @@ from test_recording_video import robot_pixels
 from zeus_msgs.msg import StepInfo
 from zeus_ros.demo import check_episode, DemoFailure, RECORDED_TOPICS
 
+pytestmark = pytest.mark.ros   # starts processes of its own
+
 SCHEDULE = '0:1.0,333:0.4,666:1.7'
 
 

@@ -16,6 +16,8 @@ from zeus_ros import demo
 from zeus_ros.recording import BagWriter, read_episode
 from zeus_ros.ros.util import LOOP_QOS
 
+pytestmark = pytest.mark.ros   # starts processes of its own
+
 STEP_NS = 25_000_000
 
 

@@ -12,6 +12,9 @@ import subprocess
 import sys
 
 from conftest import REPO
+import pytest
+
+pytestmark = pytest.mark.ros   # starts processes of its own
 
 NODES = ['sim_node', 'context_node', 'policy_node']
 MINUTES = 0.75

@@ -22,6 +22,8 @@ from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
 
+pytestmark = pytest.mark.ros   # starts processes of its own
+
 FAMILY = 'walker-walk-v0'   # friction; control period 25 ms
 PERIOD_MS = 25.0
 

@@ -13,6 +13,8 @@ import yaml
 
 from zeus_ros.sweep import run_dir, SweepConfig
 
+pytestmark = pytest.mark.ros   # starts processes of its own
+
 REPO = Path(__file__).resolve().parents[1]
 TINY = {'hidden_dim': 32, 'batch_size_per_task': 4, 'replay_capacity': 3000,
         'init_steps': 40, 'episode_steps': 60, 'context_length': 5}

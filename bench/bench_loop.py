@@ -3,7 +3,7 @@
     python bench/bench_loop.py --weights weights/walker-walk-v0-zeus [--realtime-seconds 600]
 
 Measures, with the same checkpoint:
-1. in-process loop (ParamEnv + ContextWindow + InferenceModel, no middleware): steps/s;
+1. in-process loop (evaluate.run_episode: ParamEnv + InferenceModel, no middleware): steps/s;
 2. lockstep through the three ROS processes: control steps/s, the median (and
    range) over --episodes episodes, and the ratio of the median to (1);
 3. step latency, state published -> its command, p50 / p99 / max (seen from an
@@ -44,35 +44,26 @@ from zeus_msgs.srv import Reset  # noqa: E402
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
 from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
 from zeus_ros.deploy.inference import InferenceModel  # noqa: E402
-from zeus_ros.core.window import ContextWindow  # noqa: E402
+from zeus_ros.evaluate import run_episode  # noqa: E402
 from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
 from zeus_ros.ros.util import call_service, LOOP_QOS, reset_episode, stamp_ns  # noqa: E402
 
 
 def in_process_rate(weights: Path, steps: int, samples: int = 5) -> float:
-    """Steps/s of simulation plus inference in one process, as `evaluate` runs it.
+    """Steps/s of simulation plus inference in one process: `evaluate.run_episode`.
 
-    The median of `samples` runs of `steps` steps: one short sample on this
-    machine varies by a quarter from run to run.
+    The median of `samples` episodes of `steps` steps (the evaluator the
+    trainer and the eval CLI use): one short sample on this machine varies by
+    a quarter from run to run.
     """
     model = InferenceModel.load(weights)
-    env = ParamEnv(model.family, seed=0)
-    window = ContextWindow(model.k, env.obs_dim, env.action_dim)
-    obs = env.reset(seed=0)
+    env = ParamEnv(model.family, seed=0, episode_steps=steps)
     rates = []
-    for _ in range(samples):
+    for sample in range(samples):
         start = time.perf_counter()
-        for _ in range(steps):
-            latent = model.context(*window.arrays())
-            action = model.act(obs, latent)
-            result = env.step(action)
-            window.push(obs, action, result.reward, result.observation)
-            obs = result.observation
-            if result.truncated:
-                window.clear()
-                obs = env.reset()
-        rates.append(steps / (time.perf_counter() - start))
+        record = run_episode(model, model.family, env.param_value, seed=sample, env=env)
+        rates.append(len(record.actions) / (time.perf_counter() - start))
     return float(np.median(rates))
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from conftest import spin_until
+from conftest import installed_exe, REPO, spin_until
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -102,3 +102,28 @@ class LockstepDriver:
             lambda i: (i.episode == info.episode and i.step == info.step + 1)
             or i.episode == info.episode + 1)
         return self._pair(self.current)
+
+
+# -- the three-node loop, shared by the closed-loop tests ------------------------------
+FAMILY = 'walker-walk-v0'
+WALKER_WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
+COLLECT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def start_node(spawn, name, params):
+    argv = [installed_exe(name), '--ros-args']
+    for key, value in params.items():
+        argv += ['-p', f'{key}:={value}']
+    return spawn(argv, name)
+
+
+def collect(ros_node, msg_type, topic):
+    received = []
+    ros_node.create_subscription(msg_type, topic, received.append, COLLECT_QOS)
+    return received
+
+
+def wait_loop_running(ros_node, steps, timeout=60.0):
+    """Wait until the policy's actions reach the sim: every node has discovered the others."""
+    assert spin_until(ros_node, lambda: any(any(s.applied_action) for s in steps[-3:]),
+                      timeout), 'the loop never closed (no non-zero action applied)'

@@ -1,17 +1,14 @@
 """The three nodes on real DDS are the trained agent: equal returns, faults survived."""
 
-from conftest import installed_exe, REPO, spin_until
+from conftest import REPO, spin_until
 import numpy as np
 import pytest
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
+from sim_driver import (COLLECT_QOS, collect, FAMILY, LockstepDriver, start_node,
+                        WALKER_ACTUATORS as ACTUATORS, wait_loop_running, WALKER_WEIGHTS)
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.evaluate import run_episode
 from zeus_ros.deploy.inference import InferenceModel
 
-FAMILY = 'walker-walk-v0'
-WALKER_WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
-QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 @pytest.fixture
@@ -30,25 +27,6 @@ def loop(spawn, ros_node, small_checkpoint):
         driver.wait_ready()
         return procs, driver
     return start
-
-
-def start_node(spawn, name, params):
-    argv = [installed_exe(name), '--ros-args']
-    for key, value in params.items():
-        argv += ['-p', f'{key}:={value}']
-    return spawn(argv, name)
-
-
-def collect(ros_node, msg_type, topic):
-    received = []
-    ros_node.create_subscription(msg_type, topic, received.append, QOS)
-    return received
-
-
-def wait_loop_running(ros_node, steps, timeout=60.0):
-    """Wait until the policy's actions reach the sim: every node has discovered the others."""
-    assert spin_until(ros_node, lambda: any(any(s.applied_action) for s in steps[-3:]),
-                      timeout), 'the loop never closed (no non-zero action applied)'
 
 
 @pytest.mark.parametrize('which', ['small_checkpoint', 'shipped_walker_weights'])
@@ -91,7 +69,8 @@ def test_policy_killed_then_restarted(loop, ros_node, spawn, small_checkpoint):
 
 def test_context_node_restart_refills_the_window(loop, ros_node, spawn, small_checkpoint):
     contexts = []
-    context_sub = ros_node.create_subscription(Context, '/zeus/context', contexts.append, QOS)
+    context_sub = ros_node.create_subscription(Context, '/zeus/context', contexts.append,
+                                               COLLECT_QOS)
     steps = collect(ros_node, StepInfo, '/zeus/step')
     procs, driver = loop()
     wait_loop_running(ros_node, steps)

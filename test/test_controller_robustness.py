@@ -14,7 +14,7 @@ import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from sim_node.env import ParamEnv
-from test_closed_loop import collect, FAMILY, start_node, wait_loop_running, WALKER_WEIGHTS
+from sim_driver import collect, FAMILY, start_node, wait_loop_running, WALKER_WEIGHTS
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.context_node import ContextGuard
 from zeus_ros.ros.util import set_stamp, stamp_ns

@@ -12,8 +12,7 @@ from conftest import REPO
 from PIL import Image
 import pytest
 from sensor_msgs.msg import JointState
-from test_recording import assert_consistent, assert_loop_qos, read_bag
-from test_recording_video import robot_pixels
+from bag_helpers import assert_consistent, assert_loop_qos, read_bag, robot_pixels
 from zeus_msgs.msg import StepInfo
 from zeus_ros.demo import check_episode, DemoFailure, RECORDED_TOPICS
 

@@ -1,93 +1,21 @@
 """The recording is a rosbag2 bag: checked with an independent reader, `rosbags` (PyPI).
 
-`read_bag` is also what test_demo.py checks the demo's bags with.
+The reading helpers live in bag_helpers.py (test_demo.py checks the demo's bags with them).
 """
 
-from dataclasses import dataclass
 import time
 
-from conftest import REPO
+from bag_helpers import assert_consistent, assert_loop_qos, read_bag
 from mcap.reader import make_reader
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
-from rosbags.interfaces import QosDurability, QosHistory, QosReliability
-from rosbags.rosbag2 import Reader
-from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+from rosbags.interfaces import QosHistory, QosReliability
 from sensor_msgs.msg import JointState
 import yaml
 from zeus_msgs.msg import StepInfo
 from zeus_ros.recording import BagRecorder, BagWriter, TopicSpec
 from zeus_ros.ros.util import LOOP_QOS
-
-INFINITE = (9223372036, 854775807)   # RMW_DURATION_INFINITE as sec, nsec
-
-
-def zeus_typestore():
-    """Return rosbags' Jazzy types plus zeus_msgs, registered from msg_defs/msg/*.msg."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    types = {}
-    for path in sorted((REPO / 'msg_defs' / 'msg').glob('*.msg')):
-        types.update(get_types_from_msg(path.read_text(), f'zeus_msgs/msg/{path.stem}'))
-    store.register(types)
-    return store
-
-
-@dataclass
-class BagContents:
-    """What rosbags reads from a bag directory."""
-
-    types: dict          # topic -> type, from the bag's connections
-    counts: dict         # topic -> message count the metadata states
-    qos: dict            # topic -> rosbags Qos list (offered_qos_profiles)
-    hashes: dict         # topic -> type description hash
-    messages: dict       # topic -> decoded messages, in log-time order
-    times: dict          # topic -> log times (ns)
-    start_ns: int
-    duration_ns: int
-    message_count: int
-    ros_distro: str
-
-
-def read_bag(bag_dir) -> BagContents:
-    """Open a rosbag2 directory with rosbags and decode every message."""
-    store = zeus_typestore()
-    with Reader(bag_dir) as reader:
-        conns = reader.connections
-        contents = BagContents(
-            types={c.topic: c.msgtype for c in conns},
-            counts={c.topic: c.msgcount for c in conns},
-            qos={c.topic: c.ext.offered_qos_profiles for c in conns},
-            hashes={c.topic: c.digest for c in conns},
-            messages={c.topic: [] for c in conns}, times={c.topic: [] for c in conns},
-            start_ns=reader.start_time, duration_ns=reader.duration,
-            message_count=reader.message_count, ros_distro=reader.ros_distro)
-        for conn, timestamp, raw in reader.messages():
-            contents.messages[conn.topic].append(store.deserialize_cdr(raw, conn.msgtype))
-            contents.times[conn.topic].append(timestamp)
-    return contents
-
-
-def assert_consistent(bag: BagContents) -> None:
-    """Check that the counts and times the metadata states are those of the messages."""
-    assert bag.counts == {t: len(m) for t, m in bag.messages.items()}
-    assert bag.message_count == sum(bag.counts.values())
-    times = [t for ts in bag.times.values() for t in ts]
-    assert bag.start_ns == min(times)
-    # rosbags reports duration as last - first + 1 ns (its end time is exclusive).
-    assert bag.duration_ns in (max(times) - min(times), max(times) - min(times) + 1)
-    assert bag.ros_distro == 'jazzy'
-
-
-def assert_loop_qos(profiles) -> None:
-    """Reliable, keep-last 10, volatile (LOOP_QOS), infinite deadline and lifespan."""
-    assert profiles, 'no offered_qos_profiles'
-    for qos in profiles:
-        assert qos.reliability == QosReliability.RELIABLE
-        assert (qos.history, qos.depth) == (QosHistory.KEEP_LAST, 10)
-        assert qos.durability == QosDurability.VOLATILE
-        assert (qos.deadline.sec, qos.deadline.nsec) == INFINITE
-        assert (qos.lifespan.sec, qos.lifespan.nsec) == INFINITE
 
 
 def _step(i: int) -> StepInfo:

@@ -5,6 +5,7 @@ import subprocess
 import sys
 from types import SimpleNamespace
 
+from bag_helpers import robot_pixels
 from conftest import REPO
 import numpy as np
 from PIL import Image
@@ -63,13 +64,6 @@ def render(bag_dir, out, gl: str, *extra):
         [sys.executable, '-m', 'zeus_ros.recording', 'video', str(bag_dir), str(out), *extra],
         cwd=REPO, env=dict(os.environ, MUJOCO_GL=gl), capture_output=True, text=True,
         timeout=180)
-
-
-def robot_pixels(image: Image.Image) -> int:
-    """Pixels of the walker's orange body (floor and sky are blue and dark)."""
-    rgb = np.asarray(image.convert('RGB')).astype(int)
-    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-    return int(np.sum((r > 150) & (r > g + 30) & (g > b + 20)))
 
 
 def test_read_episode_pairs_states_parameters_and_estimates(episode_bag):

@@ -7,7 +7,7 @@ from conftest import REPO, spin_until
 import numpy as np
 import pytest
 from sim_driver import LockstepDriver, stamp_key
-from test_closed_loop import collect, start_node, wait_loop_running
+from sim_driver import collect, start_node, wait_loop_running
 from zeus_msgs.msg import Context, StepInfo
 
 K = 5

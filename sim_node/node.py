@@ -55,7 +55,7 @@ from sim_node.camera import CameraPublisher
 from sim_node.env import ParamEnv
 from sim_node.families import FAMILIES, get_family
 from sim_node.protocol import (check_reset_request, KEEP_STREAM, loop_problem,
-                               parse_command, RecentRises, SEED_MAX)
+                               parse_command, RecentCounts, SEED_MAX)
 from sim_node.stepper import MODES, PublishedState, SimStepper, StepOutcome
 from sim_node.swaps import SwapQueue
 from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
@@ -94,7 +94,7 @@ class SimNode(Node):
         self.env = ParamEnv(self.spec.name, self._param(self.spec.param_name), seed=seed)
         self.swaps = SwapQueue(self.env.prepare_param)   # builds swapped physics off the loop
         self.stepper = SimStepper(self.env, self.publish_state, self.swaps, seed=seed)
-        self.recent = RecentRises()   # the diagnostics level reads the counters' recent rises
+        self.recent = RecentCounts()   # the diagnostics level reads the counters' recent rises
         self.warnings = ThrottledWarnings(self.get_logger())
         self.step_rate = RateMeter()  # steps/s; latency = state published -> command in
         self.tick_lateness = TickLateness()  # realtime: tick start - scheduled time

@@ -80,12 +80,12 @@ def check_reset_request(seed: int, names: Sequence[str], values: Sequence[float]
     return None
 
 
-class RecentRises:
+class RecentCounts:
     """How much each counter rose over the last `window_s` seconds.
 
-    Diagnostic levels read this, not the totals since start, so that one bad
-    command at start-up does not keep the sim at WARN for ever. Fed once per
-    report (1 Hz) with the totals.
+    Diagnostic levels read this, not the totals since start, so that one gap at
+    start-up does not keep a node at WARN for ever. Fed once per report (1 Hz)
+    with the totals; used by the sim node and both controller nodes.
     """
 
     def __init__(self, window_s: float = 10.0):
@@ -100,6 +100,13 @@ class RecentRises:
             self._snapshots.popleft()
         base = self._snapshots[0][1]
         return {key: value - base.get(key, 0) for key, value in totals.items()}
+
+    def problem(self, now: float, totals: dict) -> str | None:
+        """'<rise> <counter>, ... in the last N s' for the counters that rose, or None."""
+        risen = [f'{rise} {key}' for key, rise in self.rises(now, totals).items() if rise > 0]
+        if not risen:
+            return None
+        return f'{", ".join(risen)} in the last {self.window_s:g} s'
 
 
 def loop_problem(recent: dict, window_s: float) -> str | None:

@@ -34,6 +34,13 @@ def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpo
     weights = small_checkpoint if which == 'small_checkpoint' else WALKER_WEIGHTS
     seed, friction = 5, 1.25
     expected = run_episode(InferenceModel.load(weights), FAMILY, friction, seed)
+    rewards = ros_episode_rewards(loop, ros_node, weights, seed, friction)
+    assert abs(sum(rewards) - expected.episode_return) <= 1e-9
+    np.testing.assert_array_equal(rewards, expected.rewards)
+
+
+def ros_episode_rewards(loop, ros_node, weights, seed: int, friction: float) -> list[float]:
+    """Return the rewards of one full episode through the three nodes, from a reset."""
     steps = collect(ros_node, StepInfo, '/zeus/step')
     _, driver = loop(weights=weights)
     wait_loop_running(ros_node, steps)
@@ -46,8 +53,7 @@ def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpo
     assert spin_until(ros_node, finished, 120.0), 'the episode did not finish through ROS'
     rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
     assert len(rewards) == 1000
-    assert abs(sum(rewards) - expected.episode_return) <= 1e-9
-    np.testing.assert_array_equal(rewards, expected.rewards)
+    return rewards
 
 
 def test_policy_killed_then_restarted(loop, ros_node, spawn, small_checkpoint):
@@ -156,14 +162,5 @@ def test_every_methods_checkpoint_runs_through_the_nodes_bit_exactly(loop, ros_n
     weights = method_checkpoints(method)
     seed, friction = 3, 1.1
     expected = run_episode(InferenceModel.load(weights), FAMILY, friction, seed)
-    steps = collect(ros_node, StepInfo, '/zeus/step')
-    _, driver = loop(weights=weights)
-    wait_loop_running(ros_node, steps)
-    driver.reset(seed=seed, params={'friction': friction})
-    episode = driver.steps[driver.current].episode
-    assert spin_until(ros_node, lambda: any((s.episode == episode and s.truncated)
-                                            or s.episode > episode for s in steps[-5:]),
-                      120.0), 'the episode did not finish through ROS'
-    rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
-    assert len(rewards) == 1000
+    rewards = ros_episode_rewards(loop, ros_node, weights, seed, friction)
     np.testing.assert_array_equal(rewards, expected.rewards)

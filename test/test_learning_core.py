@@ -195,16 +195,20 @@ def test_context_loss_trains_psi_only():
         assert no_grad(module(agent, name)), name
 
 
-def test_model_loss_trains_psi_T_R_not_phi():
-    agent, b = make_agent(), make_batch()
-    zero_all(agent)
-    loss, _, metrics = agent.method.model_loss(b, agent.phi(b.obs).detach())
+def assert_model_loss_trains_psi_T_R_only(agent, loss, metrics):
     loss.backward()
     assert 'context_loss' in metrics
     for name in ('psi', 'T', 'R'):
         assert has_grad(module(agent, name)), name
     for name in ('phi', 'critic', 'actor', 'decoder'):
         assert no_grad(module(agent, name)), name
+
+
+def test_model_loss_trains_psi_T_R_not_phi():
+    agent, b = make_agent(), make_batch()
+    zero_all(agent)
+    loss, _, metrics = agent.method.model_loss(b, agent.phi(b.obs).detach())
+    assert_model_loss_trains_psi_T_R_only(agent, loss, metrics)
 
 
 def test_alpha_psi_zero_context_loss_leaves_psi_untouched():
@@ -359,12 +363,7 @@ def test_zeus_id_psi_gets_no_critic_gradient_and_model_loss_trains_it():
     assert no_grad(agent.method.psi)
     zero_all(agent)
     loss, _, metrics = agent.method.model_loss(b)
-    loss.backward()
-    assert 'context_loss' in metrics
-    for name in ('psi', 'T', 'R'):
-        assert has_grad(module(agent, name)), name
-    for name in ('phi', 'critic', 'actor', 'decoder'):
-        assert no_grad(module(agent, name)), name
+    assert_model_loss_trains_psi_T_R_only(agent, loss, metrics)
 
 
 def test_zeus_id_critic_grad_ablation_lets_the_critic_train_psi():

@@ -5,9 +5,10 @@ import math
 import numpy as np
 import pytest
 from sim_node.env import ParamEnv
+from sim_node.protocol import RecentCounts
 from zeus_ros.core.window import ContextWindow
 from zeus_ros.ros.pairing import (BadMessage, DUPLICATE, JUMP, NEXT, observation_from_message,
-                              OUTLIER, RecentCounts, RESTART, StampFollower,
+                              OUTLIER, RESTART, StampFollower,
                               StateContextPairer, TransitionAssembler)
 
 K = 5

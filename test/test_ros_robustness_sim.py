@@ -16,7 +16,7 @@ from rcl_interfaces.srv import GetParameters
 from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
 from sim_node.env import ParamEnv
 from sim_node.families import get_family
-from sim_node.protocol import check_reset_request, loop_problem, RecentRises, SEED_MAX
+from sim_node.protocol import check_reset_request, loop_problem, RecentCounts, SEED_MAX
 from zeus_msgs.srv import Reset
 from zeus_ros.ros.util import call_service
 
@@ -260,7 +260,7 @@ def test_check_reset_request(seed, names, values, expected):
 
 
 def test_recent_rises_forget_what_left_the_window():
-    recent = RecentRises(window_s=10.0)
+    recent = RecentCounts(window_s=10.0)
     assert recent.rises(0.0, {'rejected': 1}) == {'rejected': 1}
     assert recent.rises(5.0, {'rejected': 1}) == {'rejected': 1}
     assert recent.rises(10.5, {'rejected': 1}) == {'rejected': 0}

@@ -31,6 +31,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
 
+from sim_node.protocol import RecentCounts
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
@@ -38,7 +39,7 @@ from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMi
                                      load_weights_parameter)
 from zeus_ros.ros.loop_spin import create_loop_subscription
 from zeus_ros.ros.pairing import (BadMessage, forget_received, layout_from_metadata, OUTLIER,
-                              RecentCounts, TransitionAssembler)
+                              TransitionAssembler)
 from zeus_ros.ros.util import (diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
 

@@ -28,12 +28,13 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
 
+from sim_node.protocol import RecentCounts
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
                                      load_weights_parameter)
 from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
 from zeus_ros.ros.pairing import (BadMessage, forget_received, layout_from_metadata,
-                              observation_from_message, OUTLIER, RecentCounts,
+                              observation_from_message, OUTLIER,
                               StateContextPairer)
 from zeus_ros.ros.util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)

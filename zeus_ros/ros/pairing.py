@@ -14,12 +14,11 @@ Both follow the simulator's clock with a `StampFollower`, so that a restarted
 sim (its clock starts from zero again) gets control back at once, and a stray
 message stamped far ahead does not stop control. `observation_from_message`
 turns a `JointState`'s fields into an observation or says why it does not fit;
-`RecentCounts` keeps the nodes' diagnostic levels to the last few seconds.
+(`sim_node.protocol.RecentCounts` keeps the nodes' diagnostic levels to the last few seconds.)
 """
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 import math
 from typing import Callable
@@ -354,30 +353,3 @@ def forget_received(received_at: dict[int, float], stamp_ns: int) -> None:
     if len(received_at) > MAX_PENDING:
         received_at.clear()
 
-
-class RecentCounts:
-    """How much each counter rose over the last `window_s` seconds.
-
-    Diagnostic levels read this, not the totals since start, so that one gap at
-    start-up does not keep a node at WARN for ever. Fed once per report (1 Hz).
-    """
-
-    def __init__(self, window_s: float = 10.0):
-        self.window_s = window_s
-        # (time, totals); the first entry is the baseline the rises are taken from.
-        self._snapshots: deque[tuple[float, dict]] = deque([(-math.inf, {})])
-
-    def rises(self, now: float, totals: dict) -> dict:
-        """Rise of each counter in (now - window_s, now], given its total now."""
-        self._snapshots.append((now, dict(totals)))
-        while len(self._snapshots) > 1 and self._snapshots[1][0] <= now - self.window_s:
-            self._snapshots.popleft()
-        base = self._snapshots[0][1]
-        return {key: value - base.get(key, 0) for key, value in totals.items()}
-
-    def problem(self, now: float, totals: dict) -> str | None:
-        """'<rise> <counter>, ... in the last N s' for the counters that rose, or None."""
-        risen = [f'{rise} {key}' for key, rise in self.rises(now, totals).items() if rise > 0]
-        if not risen:
-            return None
-        return f'{", ".join(risen)} in the last {self.window_s:g} s'

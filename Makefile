@@ -21,12 +21,15 @@ test: setup
 test-unit: setup
 	$(IN_WS) python -m pytest -q -m unit test
 
-# The context-free reference runs beside the adaptive policy once its weights exist.
-DEMO_WEIGHTS ?= weights/walker-walk-v0-zeus
-DEMO_REFERENCE ?= $(wildcard weights/walker-walk-v0-sac)
+# The friction family where the feet slip: a context method beside the context-free
+# reference (sac), through the same graph, frictions from inside the training range
+# to both sides of it (0.06 and 0.5 are extrapolation values).
+DEMO_WEIGHTS ?= weights/walker-walk-slippery-zeus
+DEMO_REFERENCE ?= $(wildcard weights/walker-walk-slippery-sac)
+DEMO_SCHEDULE ?= 0:0.25,333:0.06,666:0.5
 demo: setup
 	$(IN_WS) python -m zeus_ros.demo --weights $(DEMO_WEIGHTS) --out demo_out \
-	  $(if $(DEMO_REFERENCE),--reference-weights $(DEMO_REFERENCE))
+	  --schedule $(DEMO_SCHEDULE) $(if $(DEMO_REFERENCE),--reference-weights $(DEMO_REFERENCE))
 
 lint: setup
 	$(IN_WS) ruff check .

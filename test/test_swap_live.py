@@ -83,6 +83,12 @@ def swaps_logged(proc):
             re.findall(r'friction: ([\d.e+-]+) -> ([\d.e+-]+) at ', proc.output())]
 
 
+def values_logged(ros_node, proc, last):
+    """Return the values the log shows put into force, once `last` is among them (it lags)."""
+    spin_until(ros_node, lambda: swaps_logged(proc) and swaps_logged(proc)[-1][1] == last, 5.0)
+    return [new for _, new in swaps_logged(proc)]
+
+
 def send_sets(driver, values, gap_s):
     """Send one SetParameters request per value, `gap_s` apart; return the futures."""
     futures = []
@@ -122,7 +128,7 @@ def test_realtime_swaps_at_10_per_s_never_make_a_tick_late_and_all_take_effect_i
     report = next_report(ros_node, watch)   # its statistics cover every swap
     # Every value took effect, in the order set (StepInfo and the log agree).
     assert watch.values_in_force(mark) == [0.9] + values
-    assert [new for _, new in swaps_logged(proc)] == [0.9] + values
+    assert values_logged(ros_node, proc, values[-1]) == [0.9] + values
     # No tick waited for a swap: none more than a period late, none more than a few ms.
     assert int(report['ticks']) >= 30, report
     assert int(report['missed_ticks']) == 0, report
@@ -146,7 +152,7 @@ def test_100_swaps_in_a_second_are_all_answered_and_the_accepted_take_effect_in_
     assert len(accepted) >= 40      # one value per 25 ms step boundary, plus the queue
     assert spin_until(ros_node, lambda: watch.values[-1] == accepted[-1], 5.0)
     # Every accepted value took effect, in order; nothing else did.
-    assert [new for _, new in swaps_logged(proc)] == [0.9] + accepted
+    assert values_logged(ros_node, proc, accepted[-1]) == [0.9] + accepted
     seen = watch.values_in_force()
     assert seen == [v for v in [0.7, 0.9] + accepted if v in seen]   # in order, none extra
 
@@ -169,7 +175,7 @@ def test_lockstep_queues_swaps_until_its_steps_and_a_reset_value_supersedes_them
     assert 'superseded' in response.message
     key = driver._wait_for(lambda i: i.episode == response.episode and i.step == 0)
     assert list(driver.steps[key].param_values) == [1.7]
-    assert [new for _, new in swaps_logged(proc)] == [0.4, 0.5, 1.7]
+    assert values_logged(driver.node, proc, 1.7) == [0.4, 0.5, 1.7]
 
 
 def test_a_reset_without_values_puts_the_waiting_ones_into_force_first(sim):
@@ -179,6 +185,6 @@ def test_a_reset_without_values_puts_the_waiting_ones_into_force_first(sim):
         assert driver.set_param('friction', value).successful
     _, info = driver.reset(seed=-1)
     assert list(info.param_values) == [1.3]
-    episode = info.episode
-    assert [line.endswith(f'at the start of episode {episode}') for line in
+    assert values_logged(driver.node, proc, 1.3) == [0.4, 1.3]
+    assert [line.endswith(f'at the start of episode {info.episode}') for line in
             proc.output().splitlines() if 'friction: ' in line] == [True, True]

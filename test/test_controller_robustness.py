@@ -219,3 +219,17 @@ def test_context_guard_publishes_the_empty_window_context_instead_of_non_finite_
     guard = ContextGuard(StubModel([1.0, 2.0, 3.0], lambda latent: math.nan))
     _, estimate, problem = guard.context(rows, mask)
     assert math.isnan(estimate) and not problem and guard.non_finite_estimates == 0
+
+
+def test_the_policy_takes_an_integer_for_its_double_timeout(spawn, ros_node):
+    """`-p context_timeout:=5`, as people type it, is 5.0 (a double), not a refusal."""
+    from conftest import installed_exe, spin_until
+    from rcl_interfaces.srv import GetParameters
+    from zeus_ros.ros.util import call_service
+    proc = spawn([installed_exe('policy_node'), '--ros-args', '-p',
+                  f'weights:={WALKER_WEIGHTS}', '-p', 'context_timeout:=5'], 'policy_int')
+    client = ros_node.create_client(GetParameters, '/policy_node/get_parameters')
+    assert spin_until(ros_node, client.service_is_ready, 60.0), proc.output()
+    value = call_service(client, GetParameters.Request(names=['context_timeout']),
+                         lambda done, seconds: spin_until(ros_node, done, seconds)).values[0]
+    assert value.type == 3 and value.double_value == 5.0   # PARAMETER_DOUBLE

@@ -91,3 +91,13 @@ def test_the_sim_stops_quietly_on_a_signal_during_start_up(spawn, pattern):
     assert STARTED['sim_node'] not in importing.output(), 'the signal came after start-up'
     for delay, proc in later.items():
         assert_quiet_stop(proc, f'sim_node, {pattern} {delay} s after start')
+
+
+@pytest.mark.parametrize('name', ['context_node', 'policy_node'])
+def test_a_controller_stops_quietly_on_a_signal_while_torch_imports(spawn, name):
+    """Torch loads for seconds before a controller's main runs: a signal then ends it with 0."""
+    importing = start(spawn, name)
+    wait_loaded(importing, 'libtorch')
+    send(importing, PATTERNS['SIGINT twice'])
+    assert_quiet_stop(importing, f'{name}, SIGINT twice while torch imports')
+    assert STARTED[name] not in importing.output(), 'the signal came after start-up'

@@ -19,7 +19,13 @@ last 10 s. A sim of another family (StepInfo.family) is refused: the node
 exits with code 1 and one line (checked again after the sim clock restarts).
 """
 
+# ruff: noqa: E402
+# (The stop guard must come before the heavy imports: torch loads for seconds.)
 from __future__ import annotations
+
+from zeus_ros.ros import stop_guard
+
+stop_guard.install('context_node', __name__)
 
 import math
 import sys

@@ -16,7 +16,13 @@ action becomes the zero action; each is counted, warned (throttled) and
 reported in /diagnostics.
 """
 
+# ruff: noqa: E402
+# (The stop guard must come before the heavy imports: torch loads for seconds.)
 from __future__ import annotations
+
+from zeus_ros.ros import stop_guard
+
+stop_guard.install('policy_node', __name__)
 
 import sys
 import time
@@ -36,7 +42,8 @@ from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
 from zeus_ros.ros.pairing import (BadMessage, forget_received, layout_from_metadata,
                               observation_from_message, OUTLIER,
                               StateContextPairer)
-from zeus_ros.ros.util import (describe, diagnostic_array, LOOP_QOS, RateMeter, run_node,
+from zeus_ros.ros.util import (declare_double, describe, diagnostic_array, LOOP_QOS,
+                               RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
 
 
@@ -46,9 +53,9 @@ class PolicyNode(Node):
     def __init__(self):
         super().__init__('policy_node')
         self.model = load_weights_parameter(self)
-        timeout = self.declare_parameter('context_timeout', 0.5, describe(
+        timeout = declare_double(self, 'context_timeout', 0.5, describe(
             'Seconds a state waits for its context before a zero action is sent.',
-            floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)])).value
+            floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)]))
         self.layout = layout_from_metadata(self.model.metadata)
         self.actuator_names = list(self.model.metadata['action_layout']['actuator_names'])
         self.zero_action = np.zeros(self.model.action_dim)

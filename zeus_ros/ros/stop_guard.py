@@ -1,0 +1,27 @@
+"""Stop quietly on SIGINT/SIGTERM while a node's heavy modules are still importing.
+
+A signal while torch, MuJoCo or rclpy load (seconds on a busy machine) would
+otherwise end the node with an import traceback or -15. `install(program,
+module_name)` exits with 0 on such a signal, but only when the module is the
+program (`python -m ...`, or the console script `program`); `run_node` takes
+the signals over once the node starts. Imports nothing heavy.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+
+
+def _exit_quietly(_signum, _frame) -> None:
+    os._exit(0)  # nothing to clean up: no ROS context exists before run_node
+
+
+def install(program: str, module_name: str) -> bool:
+    """Install the quiet exit if this process runs `program`; True when installed."""
+    if module_name != '__main__' and os.path.basename(sys.argv[0]) != program:
+        return False
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _exit_quietly)
+    return True

@@ -33,10 +33,10 @@ def may_use_sched_fifo() -> bool:
     return subprocess.run([sys.executable, '-c', probe], capture_output=True).returncode == 0
 
 
-# Under SCHED_FIFO (the README's set-up for realtime runs) a tick here starts
-# 0.2-0.3 ms late with or without swaps; the old swap (the model rebuilt on the
-# loop thread) made each tick around it 70-330 ms late. Under the normal
-# scheduler a busy 2-core machine alone makes ticks up to ~12 ms late.
+# Under SCHED_FIFO (the README's set-up for realtime runs) the latest tick here
+# starts 0.1-0.75 ms late without swaps, 0.2-1.4 ms with them; the old swap (the
+# model rebuilt on the loop thread) made ticks around it 30-330 ms late. Under
+# the normal scheduler a busy 2-core machine alone makes ticks up to ~12 ms late.
 FIFO = may_use_sched_fifo()
 LATE_BOUND_MS = 5.0 if FIFO else 20.0
 

@@ -97,6 +97,21 @@ def to_time(stamp) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
+# The model arrays a parameter swap may change in place (sizes, positions,
+# masses: see ParamEnv.apply_prepared) and that decide what is drawn where.
+# Copied from the live model under the node's lock with every frame (a few
+# hundred bytes), so a swapped foot or torso is drawn at its new size.
+GEOMETRY_FIELDS = ('body_pos', 'body_quat', 'body_ipos', 'body_iquat', 'body_mass',
+                   'geom_pos', 'geom_quat', 'geom_size', 'geom_rbound', 'jnt_pos',
+                   'site_pos', 'site_size', 'cam_pos', 'cam_quat', 'cam_pos0', 'cam_poscom0',
+                   'cam_mat0')
+
+
+def geometry_of(model: mujoco.MjModel) -> dict[str, np.ndarray]:
+    """Return copies of the model's swappable geometry arrays."""
+    return {name: getattr(model, name).copy() for name in GEOMETRY_FIELDS}
+
+
 class _GLScene:
     """What drawing one model takes: its private copy, a scene and a MuJoCo GL context."""
 
@@ -125,7 +140,9 @@ class _GLScene:
             return float(self.model.cam_fovy[self.camera_id])
         return float(self.model.vis.global_.fovy)
 
-    def draw(self, qpos, qvel, width: int, height: int) -> np.ndarray:
+    def draw(self, qpos, qvel, width: int, height: int, geometry=None) -> np.ndarray:
+        for name, values in (geometry or {}).items():
+            getattr(self.model, name)[:] = values
         self.data.qpos[:] = qpos
         if qvel is not None:
             self.data.qvel[:] = qvel
@@ -164,14 +181,15 @@ class SimCamera:
         """Frame (height, width, 3) uint8 of a dm_control Physics in its current state."""
         return self.render_state(physics.model.ptr, physics.data.qpos, physics.data.qvel)
 
-    def render_state(self, model: mujoco.MjModel, qpos, qvel=None) -> np.ndarray:
+    def render_state(self, model: mujoco.MjModel, qpos, qvel=None,
+                     geometry: dict | None = None) -> np.ndarray:
         """Frame of `model` at joint positions `qpos` (velocities only matter to nothing drawn).
 
         Raises NoOffscreenGL when no GL context can be made.
         """
         self._use_model(model)
         self._gl.make_current()  # another camera in this thread may have taken it
-        return self._scene.draw(qpos, qvel, self.width, self.height)
+        return self._scene.draw(qpos, qvel, self.width, self.height, geometry)
 
     def _use_model(self, model: mujoco.MjModel) -> None:
         if model is self._source:
@@ -306,8 +324,9 @@ class CameraPublisher:
             physics = self._get_physics()
             model = physics.model.ptr
             qpos, qvel = physics.data.qpos.copy(), physics.data.qvel.copy()
+            geometry = geometry_of(model)   # an in-place swap keeps the model object
             stamp = self._get_stamp_ns()
-        frame = camera.render_state(model, qpos, qvel)
+        frame = camera.render_state(model, qpos, qvel, geometry)
         if self._stop.is_set():
             return
         self.image_pub.publish(camera.image_message(frame, stamp))

@@ -287,3 +287,21 @@ def test_sim_node_serves_its_camera_when_asked_and_nothing_by_default(ros_node, 
     assert spin_until(ros_node, lambda: len(steps) > mark + 20, 60), plain.output()
     publishers = ros_node.get_publishers_info_by_topic('/camera/image_raw')
     assert not [p for p in publishers if p.node_name == 'sim_node'], publishers
+
+
+def test_an_in_place_swap_is_drawn_at_its_new_size():
+    """A swap edits the live model in place: the camera draws the new torso, not the old."""
+    from sim_node.camera import geometry_of, SimCamera
+    from sim_node.env import ParamEnv
+    env = ParamEnv('cheetah-run-v0', 0.6, seed=0)
+    env.reset(seed=0)
+    model = env.physics.model.ptr
+    cam = SimCamera(320, 240)
+    qpos, qvel = env.physics.data.qpos.copy(), env.physics.data.qvel.copy()
+    short = cam.render_state(model, qpos, qvel, geometry_of(model))
+    env.apply_prepared(env.prepare_param(1.5))
+    assert env.physics.model.ptr is model             # the same model object, edited
+    stale = cam.render_state(model, qpos, qvel)       # without the copied geometry
+    long = cam.render_state(model, qpos, qvel, geometry_of(model))
+    assert np.array_equal(stale, short)
+    assert robot_mask(long).sum() > 1.2 * robot_mask(short).sum()

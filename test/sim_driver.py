@@ -127,3 +127,14 @@ def wait_loop_running(ros_node, steps, timeout=60.0):
     """Wait until the policy's actions reach the sim: every node has discovered the others."""
     assert spin_until(ros_node, lambda: any(any(s.applied_action) for s in steps[-3:]),
                       timeout), 'the loop never closed (no non-zero action applied)'
+
+
+def start_sim(spawn, ros_node, **params):
+    """Start sim_node with `params` (-p name:=value) and a driver that has seen it."""
+    argv = [installed_exe('sim_node'), '--ros-args']
+    for name, value in params.items():
+        argv += ['-p', f'{name}:={value}']
+    proc = spawn(argv, 'sim_node')
+    driver = LockstepDriver(ros_node)
+    driver.wait_ready()
+    return proc, driver

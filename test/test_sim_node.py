@@ -8,7 +8,7 @@ from conftest import installed_exe, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
 import pytest
-from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
+from sim_driver import start_sim, WALKER_ACTUATORS as ACTUATORS
 from sim_node.env import ParamEnv
 
 FAMILY = 'walker-walk-v0'
@@ -17,14 +17,8 @@ FAMILY = 'walker-walk-v0'
 @pytest.fixture
 def sim(spawn, ros_node):
     def start(family=FAMILY, **params):
-        params = {'family': family, 'command_timeout': 10.0, **params}
-        argv = [installed_exe('sim_node'), '--ros-args']
-        for name, value in params.items():
-            argv += ['-p', f'{name}:={value}']
-        proc = spawn(argv, 'sim_node')
-        driver = LockstepDriver(ros_node)
-        driver.wait_ready()
-        return proc, driver
+        return start_sim(spawn, ros_node,
+                         **{'family': family, 'command_timeout': 10.0, **params})
     return start
 
 

@@ -11,14 +11,14 @@ import re
 import subprocess
 import sys
 
-from conftest import installed_exe, spin_until
+from conftest import spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
 import pytest
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
+from sim_driver import start_sim, WALKER_ACTUATORS as ACTUATORS
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
 
@@ -44,14 +44,7 @@ LATE_BOUND_MS = 5.0 if FIFO else 20.0
 @pytest.fixture
 def sim(spawn, ros_node):
     def start(**params):
-        params = {'family': FAMILY, **params}
-        argv = [installed_exe('sim_node'), '--ros-args']
-        for name, value in params.items():
-            argv += ['-p', f'{name}:={value}']
-        proc = spawn(argv, 'sim_node')
-        driver = LockstepDriver(ros_node)
-        driver.wait_ready()
-        return proc, driver
+        return start_sim(spawn, ros_node, **{'family': FAMILY, **params})
     return start
 
 

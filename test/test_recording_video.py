@@ -78,8 +78,7 @@ def test_read_episode_pairs_states_parameters_and_estimates(episode_bag):
 def test_video_shows_the_robot_with_true_and_decoded_parameter(episode_bag, tmp_path):
     result = render(episode_bag, tmp_path / 'v.gif', 'egl', '--every', '10',
                     '--png', tmp_path / 'mid.png')
-    if result.returncode == 3 and 'no off-screen OpenGL' in result.stderr:
-        pytest.skip(result.stderr.strip())
+    # EGL (Mesa) is part of these machines: no off-screen GL is a failure, not a skip.
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith('5 frames')        # steps 0, 10, 20, 30, 40
     with Image.open(tmp_path / 'v.gif') as gif:

@@ -476,3 +476,9 @@ def test_zeus_id_identification_weight_routes_the_regression_into_psi_only():
     assert moved('psi')                       # the regression shaped psi
     assert not moved('T') and not moved('R')  # and nothing else of the model
     assert not moved('decoder')               # the decoder learns the same either way
+
+
+def test_the_ablation_refuses_a_context_loss_weight_at_configuration():
+    assert tiny_config('zeus-no-context-loss').alpha_psi == 0.0
+    with pytest.raises(ValueError, match='alpha_psi = 0 ablation'):
+        tiny_config('zeus-no-context-loss', alpha_psi=1.0)

@@ -111,6 +111,9 @@ class ZeusConfig:
             raise ValueError('alpha_psi must be >= 0')
         if self.id_weight < 0:
             raise ValueError('id_weight must be >= 0')
+        if self.method == 'zeus-no-context-loss' and self.alpha_psi != 0:
+            raise ValueError('zeus-no-context-loss is the alpha_psi = 0 ablation; '
+                             f'got alpha_psi {self.alpha_psi}')
         return self
 
     def to_dict(self) -> dict:

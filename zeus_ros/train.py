@@ -64,9 +64,8 @@ def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
                   **overrides) -> ZeusConfig:
     """Build the preset with the family's facts (Table 11's alpha_psi, reward-varying)."""
     spec = FAMILIES[family]
-    overrides.setdefault('alpha_psi', spec.alpha_psi)
-    return make_config(family, profile, method, reward_varying=spec.reward_varies_only,
-                       **overrides)
+    return make_config(family, profile, method, family_alpha_psi=spec.alpha_psi,
+                       reward_varying=spec.reward_varies_only, **overrides)
 
 
 def make_agent(cfg: ZeusConfig, env: ParamEnv) -> Agent:

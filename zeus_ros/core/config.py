@@ -135,16 +135,17 @@ class ZeusConfig:
 
 
 def make_config(family: str, profile: str = 'cpu', method: str = 'zeus', *,
-                alpha_psi: float = 1.0, reward_varying: bool = False,
+                family_alpha_psi: float = 1.0, reward_varying: bool = False,
                 **overrides) -> ZeusConfig:
     """Preset for a family, profile and method, with optional field overrides.
 
     The family's facts arrive as arguments (the learning core does not read
-    the simulation's tables): `alpha_psi` is its Table 11 value, and a
-    reward-varying family takes Table 9's exploration and Adam betas.
+    the simulation's tables): `family_alpha_psi` is its Table 11 value, and a
+    reward-varying family takes Table 9's exploration and Adam betas. Then
+    the method's presets apply, then `overrides` (the user's), which win.
     """
     base = dict(
-        family=family, profile=profile, alpha_psi=overrides.pop('alpha_psi', alpha_psi),
+        family=family, profile=profile, alpha_psi=family_alpha_psi,
         init_steps=10_000 if reward_varying else 1500,
         adam_beta1=0.5 if reward_varying else 0.9)
     if profile == 'paper':

@@ -55,6 +55,14 @@ def trained_agent(env, cfg=None):
     return agent, replay
 
 
+def resign(checkpoint, name):
+    """Record a replaced file's size and SHA-256 in the metadata (the hash check passes)."""
+    meta = json.loads((checkpoint / 'metadata.json').read_text())
+    meta['files'][name] = {'sha256': sha256_file(checkpoint / name),
+                           'bytes': (checkpoint / name).stat().st_size}
+    (checkpoint / 'metadata.json').write_text(json.dumps(meta))
+
+
 @pytest.fixture()
 def saved(env, tmp_path):
     agent, replay = trained_agent(env)
@@ -172,10 +180,7 @@ def test_shape_mismatch_refused_even_with_matching_hash(saved):
     key = next(k for k in tensors if k.startswith('actor.') and k.endswith('weight'))
     tensors[key] = torch.zeros(tensors[key].shape[0] + 1, tensors[key].shape[1])
     save_file(tensors, str(path / MODEL_FILE))
-    meta = json.loads((path / 'metadata.json').read_text())
-    meta['files'][MODEL_FILE] = {'sha256': sha256_file(path / MODEL_FILE),
-                                 'bytes': (path / MODEL_FILE).stat().st_size}
-    (path / 'metadata.json').write_text(json.dumps(meta))
+    resign(path, MODEL_FILE)
     with pytest.raises(CheckpointError, match='shape mismatch'):
         InferenceModel.load(path)
 
@@ -203,10 +208,7 @@ def test_pickle_payload_in_place_of_weights_is_refused_unexecuted(saved, env, tm
         (bad / where).write_bytes(pickle.dumps(_Payload(marker)))
     else:
         torch.save({'phi.net.0.weight': _Payload(marker)}, bad / where)
-    meta = json.loads((bad / 'metadata.json').read_text())
-    meta['files'][where] = {'sha256': sha256_file(bad / where),
-                            'bytes': (bad / where).stat().st_size}
-    (bad / 'metadata.json').write_text(json.dumps(meta))
+    resign(bad, where)
     with pytest.raises(CheckpointError, match='not a valid safetensors'):
         if where == MODEL_FILE:
             InferenceModel.load(bad)
@@ -247,10 +249,7 @@ def test_non_finite_weights_refused(saved, tmp_path):
     key = next(k for k in tensors if k.startswith('actor.'))
     tensors[key] = torch.full_like(tensors[key], float('nan'))
     save_file(tensors, str(bad / MODEL_FILE))
-    meta = json.loads((bad / 'metadata.json').read_text())
-    meta['files'][MODEL_FILE] = {'sha256': sha256_file(bad / MODEL_FILE),
-                                 'bytes': (bad / MODEL_FILE).stat().st_size}
-    (bad / 'metadata.json').write_text(json.dumps(meta))
+    resign(bad, MODEL_FILE)
     with pytest.raises(CheckpointError, match='non-finite'):
         InferenceModel.load(bad)
 

@@ -14,7 +14,7 @@ import pytest
 from sensor_msgs.msg import JointState
 from bag_helpers import assert_consistent, assert_loop_qos, read_bag, robot_pixels
 from zeus_msgs.msg import StepInfo
-from zeus_ros.demo import check_episode, DemoFailure, RECORDED_TOPICS
+from zeus_ros.demo import check_episode, DemoFailure, loop_closed, RECORDED_TOPICS
 
 pytestmark = pytest.mark.ros   # starts processes of its own
 
@@ -135,6 +135,18 @@ def test_check_episode_names_what_went_wrong():
     for message, (r, c, f, steps) in cases.items():
         with pytest.raises(DemoFailure, match=message.replace('(', r'\(').replace(')', r'\)')):
             check_episode(r, c, f, steps, 1000)
+
+
+def test_warm_up_ends_only_when_the_demo_hears_contexts_and_every_topic():
+    # Under load the demo's context subscription once matched 319 steps into
+    # the episode: a stepped command alone must not end the warm-up.
+    rows, contexts, _ = _episode(3)
+    recent = rows[-3:]
+    assert loop_closed(recent, contexts, matched=True)
+    assert not loop_closed(recent, {}, matched=True)             # no context heard yet
+    assert not loop_closed(recent, contexts, matched=False)      # a recorder topic unmatched
+    idle = [StepInfo(episode=1, step=s, applied_action=[0.0, 0.0]) for s in range(3)]
+    assert not loop_closed(idle, contexts, matched=True)         # the sim stepped on zeros
 
 
 def test_demo_refuses_a_reference_with_a_context(small_checkpoint, tmp_path):

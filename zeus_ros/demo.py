@@ -70,6 +70,8 @@ RECORDED_TOPICS = {
     '/clock': TopicSpec('rosgraph_msgs/msg/Clock', LOOP_QOS),
     '/diagnostics': TopicSpec('diagnostic_msgs/msg/DiagnosticArray', QoSProfile(depth=10)),
 }
+# The topics whose every message of the episode the demo must receive.
+LOOP_TOPICS = frozenset(t for t in RECORDED_TOPICS if t != '/diagnostics')
 # Where the policy's commands go instead of /joint_commands (see CommandGate).
 POLICY_COMMANDS = '/zeus/demo/policy_commands'
 STARTUP_S = 60.0          # the three nodes' start-up, before the episode's time limit
@@ -260,6 +262,19 @@ def check_episode(rows: list[StepInfo], contexts: dict[int, Context],
                           f'(first: step {off_policy[0]}): a command timeout?')
 
 
+def loop_closed(recent: list[StepInfo], contexts: dict[int, Context], matched: bool) -> bool:
+    """Whether the warm-up may end: the policy's commands step the sim, and the demo hears all.
+
+    A demo subscription that matched its publisher late loses what came
+    before (volatile topics): under load the context topic matched hundreds
+    of steps into the episode. So besides a stepped command, one of the
+    recent states' contexts must have arrived here and every loop topic's
+    subscription (the recorder's too) must have a publisher.
+    """
+    return (matched and any(any(s.applied_action) for s in recent)
+            and any(stamp_ns(s.header) in contexts for s in recent))
+
+
 def _stepped_on(state: StepInfo, command: JointState | None) -> bool:
     """Whether the sim applied `command` (clipped, as MuJoCo does) to reach `state`."""
     return command is not None and np.allclose(
@@ -344,7 +359,9 @@ class DemoRun:
         self.gate.close()
 
     def _loop_closed(self) -> bool:
-        return any(any(s.applied_action) for s in self.rows[-3:])
+        matched = all(sub.get_publisher_count() > 0 for sub in self.node.subscriptions
+                      if sub.topic_name in LOOP_TOPICS)
+        return loop_closed(self.rows[-3:], self.contexts, matched)
 
     def reset(self, seed: int, value: float | None) -> int:
         """Start an episode (under `value`, if given); return its number."""

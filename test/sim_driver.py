@@ -25,8 +25,9 @@ class LockstepDriver:
         self.node, self.timeout = node, timeout
         self.states: dict[int, JointState] = {}
         self.steps: dict[int, StepInfo] = {}
-        node.create_subscription(JointState, '/joint_states', self._on_state, QOS)
-        node.create_subscription(StepInfo, '/zeus/step', self._on_step, QOS)
+        self.subscriptions = (
+            node.create_subscription(JointState, '/joint_states', self._on_state, QOS),
+            node.create_subscription(StepInfo, '/zeus/step', self._on_step, QOS))
         self.command_pub = node.create_publisher(JointState, '/joint_commands', QOS)
         self.reset_client = node.create_client(Reset, f'/{sim_name}/reset')
         self.param_client = node.create_client(SetParameters, f'/{sim_name}/set_parameters')
@@ -42,8 +43,10 @@ class LockstepDriver:
         ready = spin_until(self.node, lambda: (
             self.reset_client.service_is_ready() and self.param_client.service_is_ready()
             and self.command_pub.get_subscription_count() > 0
-            and self.node.count_publishers('/joint_states') > 0
-            and self.node.count_publishers('/zeus/step') > 0), self.timeout)
+            # matched to this driver's own readers, not only seen on the graph:
+            # a state published before its reader matched is lost (volatile topics)
+            and all(sub.get_publisher_count() > 0 for sub in self.subscriptions)),
+            self.timeout)
         assert ready, 'sim_node did not come up on the graph'
 
     def follow_latest(self):
@@ -117,9 +120,17 @@ def start_node(spawn, name, params):
     return spawn(argv, name)
 
 
-def collect(ros_node, msg_type, topic):
-    received = []
-    ros_node.create_subscription(msg_type, topic, received.append, COLLECT_QOS)
+class Collected(list):
+    """Messages received on one topic, in order; `matched()`: a publisher is matched to it."""
+
+    def matched(self) -> bool:
+        return self.subscription.get_publisher_count() > 0
+
+
+def collect(ros_node, msg_type, topic) -> Collected:
+    received = Collected()
+    received.subscription = ros_node.create_subscription(msg_type, topic, received.append,
+                                                         COLLECT_QOS)
     return received
 
 

@@ -29,6 +29,19 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "$want" > "$stamp"
 fi
 
+# Packages wanted for their data files only, installed without their dependencies
+# (requirements-assets.lock: metaworld's Sawyer scene; its own pin would replace
+# the mujoco that dm-control needs). Hash-checked; own stamp, so it also runs on
+# a venv made before the file existed.
+want_assets=$(sha256sum requirements-assets.lock | cut -d' ' -f1)
+stamp_assets="$venv/.requirements-assets.sha256"
+if [ "$(cat "$stamp_assets" 2>/dev/null)" != "$want_assets" ]; then
+  echo "[setup] installing requirements-assets.lock (--no-deps)"
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+    --require-hashes -r requirements-assets.lock
+  echo "$want_assets" > "$stamp_assets"
+fi
+
 # The wheels' CMake exports name the include dirs of the machine they were
 # built on; point them at this venv's Python and numpy headers.
 py_inc=$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')

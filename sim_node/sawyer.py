@@ -294,9 +294,9 @@ class SawyerPegEnv:
     rather than joint targets, because the task is defined in Cartesian space
     (the hole's position is what changes between tasks), because the scene is
     built for it (metaworld drives its Sawyer only this way; its arm joints
-    have no actuators), and because a 4-D action in which each dimension moves
-    the peg one way is much easier to explore and learn in than a 7-D
-    redundant joint space where the same tip motion needs coordinated joints.
+    have no actuators), and because in a 4-D action each dimension moves the
+    peg one way, where in a redundant 7-D joint space the same tip motion
+    needs coordinated joints (easier to explore; not measured here).
     (MELD itself used joint-position deltas on its own arm model.) The
     gripper is kept, as the issue asks, so a policy can also drop the peg.
 

@@ -81,3 +81,18 @@ def test_killed_sweep_resumes_its_trials_and_gathers_results(tmp_path):
 def _timestep(run: Path) -> int:
     from zeus_ros.deploy.checkpoint import load_metadata
     return int(load_metadata(run / 'checkpoint')['steps']['timestep'])
+
+
+@pytest.mark.unit
+def test_the_report_table_takes_only_finished_runs_and_reuses_their_reports(tmp_path):
+    from zeus_ros.sweep_results import run_report
+    run = tmp_path / 'run'
+    (run / 'checkpoint').mkdir(parents=True)
+    meta = run / 'checkpoint' / 'metadata.json'
+    meta.write_text('{"steps": {"timestep": 900}}')
+    assert run_report(run, episodes=1, steps=1000) is None     # still training
+    meta.write_text('{"steps": {"timestep": 1000}}')
+    cached = run / 'adaptation.json'
+    cached.write_text('{"returns": [], "identification": null}')
+    os.utime(meta, (1, 1))                                   # the report is newer
+    assert run_report(run, episodes=1, steps=1000) == {'returns': [], 'identification': None}

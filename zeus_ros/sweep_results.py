@@ -20,7 +20,7 @@ the sweep folder:
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 import json
 from pathlib import Path
 
@@ -91,46 +91,95 @@ def table_rows(curves: dict) -> list[dict]:
     return rows
 
 
-def adaptation_figures(cfg: SweepConfig) -> dict:
-    """{(family, method): (R^2 mean, sem, largest context gap mean, sem)} from the reports."""
+@dataclass
+class ReportFigures:
+    """Adaptation-report figures of one family and method, one entry per seed."""
+
+    split_returns: dict[str, list[float]]   # split -> mean return over its values, per seed
+    r2: list[float]
+    largest_gap: list[float]
+
+
+def run_report(run: Path, episodes: int, steps: int) -> dict | None:
+    """Return the adaptation report of a finished run's checkpoint as JSON (cached beside it).
+
+    None while the run has not reached `steps` timesteps (a report of a
+    half-trained policy would enter the table as a result). A report newer
+    than the checkpoint's metadata is reused: reports are slow, and a
+    finished run's checkpoint does not change.
+    """
     from zeus_ros.adaptation import build_report, ReportConfig
+    meta, cached = run / 'checkpoint' / 'metadata.json', run / 'adaptation.json'
+    if not meta.exists() or json.loads(meta.read_text())['steps']['timestep'] < steps:
+        return None
+    if cached.exists() and cached.stat().st_mtime > meta.stat().st_mtime:
+        return json.loads(cached.read_text())
+    report = build_report(str(run / 'checkpoint'), ReportConfig(episodes=episodes))
+    cached.write_text(report.to_json())
+    return json.loads(report.to_json())
+
+
+def adaptation_figures(cfg: SweepConfig, episodes: int = 2) -> dict:
+    """{(family, method): ReportFigures} from each run's adaptation report."""
     out = {}
     for family in cfg.families:
         for method in cfg.methods:
-            r2, gap = [], []
+            figures = ReportFigures({}, [], [])
             for seed in cfg.seeds:
-                ckpt = run_dir(cfg, family, method, seed) / 'checkpoint'
-                if not (ckpt / 'metadata.json').exists():
+                report = run_report(run_dir(cfg, family, method, seed), episodes, cfg.steps)
+                if report is None:
                     continue
-                report = build_report(str(ckpt), ReportConfig(episodes=1))
-                (ckpt.parent / 'adaptation.json').write_text(report.to_json())
-                if report.identification is not None:
-                    r2.append(report.identification.r2_per_step)
-                    gap.append(report.context_use.largest_gap)
-            if r2:
-                out[(family, method)] = (*mean_sem(r2), *mean_sem(gap))
+                for split in report['returns']:
+                    figures.split_returns.setdefault(split['split'], []).append(split['mean'])
+                if report['identification'] is not None:
+                    figures.r2.append(report['identification']['r2_per_step'])
+                    figures.largest_gap.append(report['context_use']['largest_gap'])
+            if figures.split_returns:
+                out[(family, method)] = figures
     return out
 
 
+def _cell(values: list[float], digits: int = 0) -> str:
+    if not values:
+        return '-'
+    mean, sem = mean_sem(values)
+    return f'{mean:.{digits}f} +- {sem:.{digits}f}'
+
+
 def markdown(rows: list[dict], figures: dict) -> str:
-    """One table per family: methods x splits, then the report's figures."""
+    """Per family: the trainer's final evaluation, then the adaptation report's figures."""
     lines = []
     for family in dict.fromkeys(r['family'] for r in rows):
-        lines += [f'## {family}', '', '| method | ' + ' | '.join(SPLIT_ORDER) +
-                  ' | seeds | timestep | R^2 decoded | largest context gap |',
-                  '|---' * (len(SPLIT_ORDER) + 5) + '|']
-        for method in dict.fromkeys(r['method'] for r in rows if r['family'] == family):
+        lines += [f'## {family}', '', "Trainer's final evaluation (one episode per value):", '',
+                  '| method | ' + ' | '.join(SPLIT_ORDER) + ' | seeds | timestep |',
+                  '|---' * (len(SPLIT_ORDER) + 3) + '|']
+        methods = list(dict.fromkeys(r['method'] for r in rows if r['family'] == family))
+        for method in methods:
             cells = {r['split']: r for r in rows
                      if r['family'] == family and r['method'] == method}
             first = next(iter(cells.values()))
-            fig = figures.get((family, method))
-            extra = (f'{fig[0]:.2f} +- {fig[1]:.2f} | {fig[2]:.0f} +- {fig[3]:.0f}'
-                     if fig else '- | -')
             lines.append(f'| {method} | ' + ' | '.join(
                 f'{cells[s]["mean"]:.0f} +- {cells[s]["sem"]:.0f}' if s in cells else '-'
-                for s in SPLIT_ORDER) + f' | {first["seeds"]} | {first["timestep"]} | {extra} |')
-        lines.append('')
+                for s in SPLIT_ORDER) + f' | {first["seeds"]} | {first["timestep"]} |')
+        lines += ['', *_report_table(family, methods, figures)]
     return '\n'.join(lines)
+
+
+def _report_table(family: str, methods: list[str], figures: dict) -> list[str]:
+    reported = [m for m in methods if (family, m) in figures]
+    if not reported:
+        return []
+    lines = ['Adaptation report of the final checkpoints (`zeus_ros.adaptation`):', '',
+             '| method | ' + ' | '.join(SPLIT_ORDER) +
+             ' | seeds | R^2 decoded (held-out) | largest return gap, context perturbed |',
+             '|---' * (len(SPLIT_ORDER) + 4) + '|']
+    for method in reported:
+        fig = figures[(family, method)]
+        seeds = max(len(v) for v in fig.split_returns.values())
+        lines.append(f'| {method} | ' + ' | '.join(
+            _cell(fig.split_returns.get(s, [])) for s in SPLIT_ORDER) +
+            f' | {seeds} | {_cell(fig.r2, 2)} | {_cell(fig.largest_gap)} |')
+    return [*lines, '']
 
 
 def plot_curves(cfg: SweepConfig, curves: dict) -> list[Path]:
@@ -183,7 +232,7 @@ def write_results(cfg: SweepConfig, with_report: bool = False) -> str:
     text = markdown(rows, figures)
     (cfg.root / 'comparison.md').write_text(text)
     (cfg.root / 'comparison.json').write_text(json.dumps(
-        {'rows': rows, 'adaptation': {f'{k[0]}.{k[1]}': v for k, v in figures.items()}},
+        {'rows': rows, 'adaptation': {f'{k[0]}.{k[1]}': asdict(v) for k, v in figures.items()}},
         indent=2))
     plot_curves(cfg, curves)
     return text

@@ -106,7 +106,9 @@ def meld_reward(distance: float) -> float:
     a constant "offset" (the same expression at d = 0.15), which their paper
     does not have; ZeUS (appendix B.2) leaves it out, and so does this. A
     constant does not change the optimal policy, but it changes the reward a
-    context encoder reads from the observation.
+    context encoder reads from the observation. The scale 5, the base-10 log
+    and the 1e-5 are MELD's code's (the form d^2 + log(d^2 + eps) is their
+    paper's); if a reading of the paper gives others, only the constants move.
     """
     scaled_sq = (REWARD_DISTANCE_SCALE * float(distance)) ** 2
     return -(scaled_sq + math.log10(scaled_sq + REWARD_EPS))

@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 # layer -> (module prefixes in it, layers it may import, third-party roots it may not import)
 LAYERS = {
     'simulation': (('sim_node.families', 'sim_node.env', 'sim_node.layout',
-                    'sim_node.stepper', 'sim_node.swaps', 'sim_node.camera'),
+                    'sim_node.stepper', 'sim_node.swaps', 'sim_node.camera', 'sim_node.sawyer'),
                    (), ('rclpy', 'torch', 'zeus_msgs', 'zeus_ros')),
     'learning': (('zeus_ros.core',), (), ('rclpy', 'sim_node', 'mujoco', 'dm_control')),
     'deployment': (('zeus_ros.deploy',),

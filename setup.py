@@ -29,6 +29,7 @@ setup(
             'context_node = zeus_ros.context_node:main',
             'policy_node = zeus_ros.policy_node:main',
             'bringup = zeus_ros.bringup:main',
+            'composed = zeus_ros.composed:main',
             'demo = zeus_ros.demo:main',
             'train = zeus_ros.train:main',
             'eval = zeus_ros.evaluate:main',

@@ -1,7 +1,10 @@
 """Start sim_node, context_node and policy_node with a family, a checkpoint and a mode.
 
 Usage: ros2 launch zeus_ros zeus.launch.py weights:=<checkpoint> family:=walker-walk-v0
-mode:=lockstep [thread_priority:=50]
+mode:=lockstep [thread_priority:=50] [composed:=true]
+
+composed:=true runs the three nodes in one process (`zeus_ros.composed`, as
+`bringup --composed`): the same nodes and topics, on one loop thread.
 """
 
 import os
@@ -9,6 +12,7 @@ import os
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo, RegisterEventHandler
+from launch.conditions import IfCondition, UnlessCondition
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
@@ -38,19 +42,45 @@ def _end_launch(event, context):
             EmitEvent(event=Shutdown(reason=f'{event.action.name} stopped'))]
 
 
+def composed_ros_arguments(config, family, weights, mode, priority):
+    """Return the one process's ROS arguments: the config file, then each node's values.
+
+    Given by node name (-p sim_node:mode:=...), since one `parameters` dict would
+    go to all three nodes and each refuses the others' parameters; later
+    arguments win, so the launch arguments override the file.
+    """
+    values = {'sim_node': {'family': family, 'mode': mode}, 'context_node': {'weights': weights},
+              'policy_node': {'weights': weights}}
+    arguments = ['--params-file', config]
+    for node, params in values.items():
+        for key, value in {**params, 'thread_priority': priority}.items():
+            arguments += ['-p', [f'{node}:{key}:=', value]]
+    return arguments
+
+
 def generate_launch_description():
     config = os.path.join(get_package_share_directory('zeus_ros'), 'config', 'zeus.yaml')
     family = LaunchConfiguration('family')
     weights = LaunchConfiguration('weights')
     mode = LaunchConfiguration('mode')
-    priority = {'thread_priority': LaunchConfiguration('thread_priority')}
+    thread_priority = LaunchConfiguration('thread_priority')
+    separate = UnlessCondition(LaunchConfiguration('composed'))
+    priority = {'thread_priority': thread_priority}
     nodes = [
         Node(package='zeus_ros', executable='sim_node', name='sim_node', output='screen',
-             parameters=[config, {'family': family, 'mode': mode}, priority]),
+             parameters=[config, {'family': family, 'mode': mode}, priority],
+             condition=separate),
         Node(package='zeus_ros', executable='context_node', name='context_node',
-             output='screen', parameters=[config, {'weights': weights}, priority]),
+             output='screen', parameters=[config, {'weights': weights}, priority],
+             condition=separate),
         Node(package='zeus_ros', executable='policy_node', name='policy_node',
-             output='screen', parameters=[config, {'weights': weights}, priority]),
+             output='screen', parameters=[config, {'weights': weights}, priority],
+             condition=separate),
+        # No `name`: a node-name remapping would rename all three nodes.
+        Node(package='zeus_ros', executable='composed', output='screen',
+             ros_arguments=composed_ros_arguments(config, family, weights, mode,
+                                                  thread_priority),
+             condition=IfCondition(LaunchConfiguration('composed'))),
     ]
     # Like bringup: when one node ends, the whole launch ends, and a node that
     # FAILED (exit code not 0) makes `ros2 launch` itself exit non-zero.
@@ -67,6 +97,9 @@ def generate_launch_description():
         DeclareLaunchArgument('thread_priority', default_value='0',
                               description='SCHED_FIFO priority of every node (1-99; 0 = '
                                           'normal scheduler); 50 suits realtime mode'),
+        DeclareLaunchArgument('composed', default_value='false',
+                              description='true: the three nodes in one process (same '
+                                          'topics, on DDS)'),
         *nodes,
         *shutdown_on_exit,
     ])

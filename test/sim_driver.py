@@ -140,6 +140,21 @@ def wait_loop_running(ros_node, steps, timeout=60.0):
                       timeout), 'the loop never closed (no non-zero action applied)'
 
 
+def episode_rewards(ros_node, driver, steps, seed: int, friction: float) -> list[float]:
+    """Rewards of one full episode from a reset, once the loop runs (`steps`: collected)."""
+    wait_loop_running(ros_node, steps)
+    driver.reset(seed=seed, params={'friction': friction})
+    episode = driver.steps[driver.current].episode
+
+    def finished():
+        return any((s.episode == episode and s.truncated) or s.episode > episode
+                   for s in steps[-5:])
+    assert spin_until(ros_node, finished, 120.0), 'the episode did not finish through ROS'
+    rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
+    assert len(rewards) == 1000
+    return rewards
+
+
 def start_sim(spawn, ros_node, **params):
     """Start sim_node with `params` (-p name:=value) and a driver that has seen it."""
     argv = [installed_exe('sim_node'), '--ros-args']

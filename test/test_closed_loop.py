@@ -3,8 +3,9 @@
 from conftest import REPO, spin_until
 import numpy as np
 import pytest
-from sim_driver import (COLLECT_QOS, collect, FAMILY, LockstepDriver, start_node,
-                        WALKER_ACTUATORS as ACTUATORS, wait_loop_running, WALKER_WEIGHTS)
+from sim_driver import (COLLECT_QOS, collect, episode_rewards, FAMILY, LockstepDriver,
+                        start_node, WALKER_ACTUATORS as ACTUATORS, wait_loop_running,
+                        WALKER_WEIGHTS)
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.evaluate import run_episode
 from zeus_ros.deploy.inference import InferenceModel
@@ -43,17 +44,7 @@ def ros_episode_rewards(loop, ros_node, weights, seed: int, friction: float) -> 
     """Return the rewards of one full episode through the three nodes, from a reset."""
     steps = collect(ros_node, StepInfo, '/zeus/step')
     _, driver = loop(weights=weights)
-    wait_loop_running(ros_node, steps)
-    driver.reset(seed=seed, params={'friction': friction})
-    episode = driver.steps[driver.current].episode
-
-    def finished():
-        return any((s.episode == episode and s.truncated) or s.episode > episode
-                   for s in steps[-5:])
-    assert spin_until(ros_node, finished, 120.0), 'the episode did not finish through ROS'
-    rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
-    assert len(rewards) == 1000
-    return rewards
+    return episode_rewards(ros_node, driver, steps, seed, friction)
 
 
 def test_policy_killed_then_restarted(loop, ros_node, spawn, small_checkpoint):

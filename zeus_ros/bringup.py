@@ -1,10 +1,12 @@
 """bringup: start sim_node, context_node and policy_node without ROS launch.
 
-Each node runs in its own process; Ctrl-C (or SIGTERM) stops all three
-cleanly, and if any node exits the others are stopped and bringup exits with
-that node's code. The family defaults to the one the weights were trained for.
+Each node runs in its own process, or with --composed all three in one
+(`zeus_ros.composed`: the same node classes and topics, on one loop thread);
+Ctrl-C (or SIGTERM) stops all of them cleanly, and if any node exits the
+others are stopped and bringup exits with that node's code. The family
+defaults to the one the weights were trained for.
 
-    ros2 run zeus_ros bringup --weights weights/walker-walk-v0-zeus --mode lockstep
+    ros2 run zeus_ros bringup --weights weights/walker-walk-v0-zeus --mode lockstep [--composed]
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import time
 
 NODES = (('sim_node', 'sim_node.node'), ('context_node', 'zeus_ros.context_node'),
          ('policy_node', 'zeus_ros.policy_node'))
+# The process that runs all three with --composed, and its name in node_commands.
+COMPOSED = ('composed', 'zeus_ros.composed')
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -34,12 +38,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--thread-priority', type=int, default=0,
                         help="SCHED_FIFO priority (1-99) of every node's loop thread; "
                              '0 keeps the normal scheduler')
+    parser.add_argument('--composed', action='store_true',
+                        help='all three nodes in one process (same topics, on DDS)')
     parser.add_argument('--log-level', default='info')
     return parser.parse_args(argv)
 
 
-def node_commands(args: argparse.Namespace) -> dict[str, list[str]]:
-    """Build each node's command line (python -m, so no install layout is assumed)."""
+def node_parameters(args: argparse.Namespace) -> dict[str, dict]:
+    """Each node's parameters, by node name."""
     # Checked here, so that bad weights give one clear line, not three node failures.
     from zeus_ros.deploy.checkpoint import load_metadata
     weights = str(Path(args.weights).resolve())
@@ -52,13 +58,30 @@ def node_commands(args: argparse.Namespace) -> dict[str, list[str]]:
         sim_params[get_family(family).param_name] = args.param
     params = {'sim_node': sim_params, 'context_node': {'weights': weights},
               'policy_node': {'weights': weights, 'context_timeout': args.context_timeout}}
-    commands = {}
-    for name, module in NODES:
-        argv = [sys.executable, '-m', module, '--ros-args', '--log-level', args.log_level]
-        for key, value in {**params[name], 'thread_priority': args.thread_priority}.items():
-            argv += ['-p', f'{key}:={value}']
-        commands[name] = argv
-    return commands
+    return {name: {**values, 'thread_priority': args.thread_priority}
+            for name, values in params.items()}
+
+
+def _param_args(values: dict, prefix: str = '') -> list[str]:
+    return [arg for key, value in values.items() for arg in ('-p', f'{prefix}{key}:={value}')]
+
+
+def node_commands(args: argparse.Namespace) -> dict[str, list[str]]:
+    """Build each process's command line (python -m, so no install layout is assumed).
+
+    One per node, or with `args.composed` one named 'composed' that runs all
+    three, each parameter given to its node by name (-p sim_node:mode:=lockstep).
+    """
+    params = node_parameters(args)
+
+    def command(module: str, param_args: list[str]) -> list[str]:
+        return [sys.executable, '-m', module, '--ros-args', '--log-level', args.log_level,
+                *param_args]
+    if args.composed:
+        name, module = COMPOSED
+        return {name: command(module, [arg for node, values in params.items()
+                                       for arg in _param_args(values, f'{node}:')])}
+    return {name: command(module, _param_args(params[name])) for name, module in NODES}
 
 
 class Bringup:

@@ -150,26 +150,33 @@ def _take_all(subscription) -> None:
         callback(taken[0])
 
 
-def spin_loop(node: Node) -> None:
-    """Spin `node` until its context shuts down (see the module docstring).
+def spin_loop(node: Node, *more: Node) -> None:
+    """Spin `node` (and `more` nodes of its context) until the context shuts down.
+
+    Several nodes (composition: the three in one process) share the one loop
+    thread, its wait set and lock, and one background executor: a message one
+    of them publishes reaches the next in the same thread, with no wake-up of
+    another (see the module docstring). The loop's deadline is the earliest of
+    theirs.
 
     An exception raised by any callback, in either thread, ends the spin and
     is raised here, unless the context was shut down meanwhile (Ctrl-C while a
     callback was publishing): then the spin just ends.
     """
+    nodes = (node, *more)
     context = node.context
     lock = threading.Lock()
     wake_loop = _rclpy.GuardCondition(context.handle)
     executor = _SerializedExecutor(lock, wake_loop, context)
-    executor.add_node(node)
+    for each in nodes:
+        executor.add_node(each)
     errors: list[BaseException] = []
     services = threading.Thread(target=_spin_services, args=(executor, errors),
                                 name='rclpy-executor', daemon=True)
     services.start()
-    deadline_of = getattr(node, 'loop_deadline', lambda: None)
-    subscriptions = loop_subscriptions(node)
+    subscriptions = [sub for each in nodes for sub in loop_subscriptions(each)]
     try:
-        _loop(context, lock, wake_loop, deadline_of, subscriptions, errors)
+        _loop(context, lock, wake_loop, _earliest_deadline(nodes), subscriptions, errors)
     except Exception:
         if context.ok():
             raise
@@ -178,6 +185,18 @@ def spin_loop(node: Node) -> None:
         services.join(timeout=1.0)
     if errors and context.ok():
         raise errors[0]
+
+
+def _earliest_deadline(nodes) -> Callable[[], LoopDeadline | None]:
+    """Return a function giving the earliest `loop_deadline()` of `nodes` (None: none)."""
+    getters = [node.loop_deadline for node in nodes if hasattr(node, 'loop_deadline')]
+    if len(getters) == 1:
+        return getters[0]   # one node: no list to build at every wake-up
+
+    def earliest() -> LoopDeadline | None:
+        deadlines = [d for d in (get() for get in getters) if d is not None]
+        return min(deadlines, key=lambda d: d.when) if deadlines else None
+    return earliest
 
 
 def _loop(context, lock, wake_loop, deadline_of, subscriptions, errors) -> None:

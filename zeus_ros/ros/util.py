@@ -388,9 +388,9 @@ def _start(node_class):
     return node
 
 
-def _close(node, name: str) -> None:
-    """Destroy the node and shut rclpy down, whatever state a stop left them in."""
-    steps = ([node.destroy_node] if node is not None else []) + [rclpy.try_shutdown]
+def _close(nodes: list, name: str) -> None:
+    """Destroy the nodes and shut rclpy down, whatever state a stop left them in."""
+    steps = [node.destroy_node for node in reversed(nodes)] + [rclpy.try_shutdown]
     for step in steps:
         try:
             step()
@@ -406,33 +406,48 @@ def run_node(node_class, args=None, fatal: tuple = ()) -> int:
     that the node refuses (out of range, wrong type) or does not have, or a
     `fatal` error.
     """
+    return run_nodes((node_class,), args, fatal)
+
+
+def run_nodes(node_classes, args=None, fatal: tuple = (), name: str | None = None) -> int:
+    """`run_node` for several nodes in one process, on one `spin_loop` (composition).
+
+    They are built in order with one rclpy context (per-node parameters:
+    `-p node_name:param:=value`), share the loop thread, and stop together: a
+    signal, a fatal error or a failed start of any one ends them all. Messages
+    name the node being started, else `name` (default: the one node's class).
+    """
     stop = StopSignals()
+    name = name or node_classes[0].__name__
     try:
         stop.install()
-        return _run(node_class, args, fatal, stop)
+        return _run(tuple(node_classes), args, fatal, stop, name)
     except StopRequested:
         return 0  # the first signal came while a failed start-up was being reported
 
 
-def _run(node_class, args, fatal: tuple, stop: StopSignals) -> int:
-    name, node = node_class.__name__, None
+def _run(node_classes: tuple, args, fatal: tuple, stop: StopSignals, name: str) -> int:
+    where, nodes = name, []
     try:
         problem = _init_rclpy(args)
         if problem is not None:
             print(f'{name}: {problem}', file=sys.stderr)
             return 1
-        node = _start(node_class)
+        for node_class in node_classes:
+            where = node_class.__name__
+            nodes.append(_start(node_class))
+        where = name
         stop.spinning = True
-        spin_loop(node)
+        spin_loop(*nodes)
     except (StopRequested, ExternalShutdownException):
         pass
     except ParameterException as error:
         # rclpy words it '<reason>: <parameter name>'; name first reads better.
         reason, _, parameter = str(error).rpartition(': ')
-        print(f'{name}: parameter {parameter}: {reason}', file=sys.stderr)
+        print(f'{where}: parameter {parameter}: {reason}', file=sys.stderr)
         return 1
     except (UnknownParameters, *fatal) as error:
-        print(f'{name}: {error}', file=sys.stderr)
+        print(f'{where}: {error}', file=sys.stderr)
         return 1
     except Exception:
         if not stop.stopping:
@@ -440,5 +455,5 @@ def _run(node_class, args, fatal: tuple, stop: StopSignals) -> int:
         # Else an error of the context a signal is shutting down: the stop asked for.
     finally:
         stop.ignore()
-        _close(node, name)
+        _close(nodes, name)
     return 0

@@ -41,7 +41,8 @@ clean:
 REALTIME_SECONDS ?= 60
 bench: setup
 	$(IN_WS) python bench/bench_hop.py
-	$(IN_WS) python bench/bench_loop.py --weights weights/walker-walk-v0-zeus \
+	$(IN_WS) python bench/bench_loop.py --weights weights/walker-walk-v0-zeus --composed \
+	  --transports SHM \
 	  --realtime-weights weights/cheetah-run-v0-zeus --realtime-seconds $(REALTIME_SECONDS) \
 	  --compare-normal-scheduler --json bench/results_loop.json
 	$(IN_WS) python bench/bench_trainer.py --profile cpu --threads 2 1

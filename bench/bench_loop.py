@@ -5,7 +5,11 @@
 Measures, with the same checkpoint:
 1. in-process loop (evaluate.run_episode: ParamEnv + InferenceModel, no middleware): steps/s;
 2. lockstep through the three ROS processes: control steps/s, the median (and
-   range) over --episodes episodes, and the ratio of the median to (1);
+   range) over --episodes episodes, and the ratio of the median to (1); then
+   the same with the three nodes composed in one process (`bringup --composed`,
+   figures prefixed composed_), and under each --transports value
+   (FASTDDS_BUILTIN_TRANSPORTS), so the modes come from one run; each with
+   the CPU ms per step of every process of the graph and of the observer;
 3. step latency, state published -> its command, p50 / p99 / max (seen from an
    observer process that receives both topics; the sim's own view is in /diagnostics);
 4. realtime mode: how late the sim's control ticks start (its own clock, from its
@@ -50,21 +54,29 @@ from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background
 from zeus_ros.ros.util import call_service, LOOP_QOS, reset_episode, stamp_ns  # noqa: E402
 
 
-def in_process_rate(weights: Path, steps: int, samples: int = 5) -> float:
+def in_process_rate(weights: Path, steps: int, samples: int = 5) -> tuple[float, float]:
     """Steps/s of simulation plus inference in one process: `evaluate.run_episode`.
 
     The median of `samples` episodes of `steps` steps (the evaluator the
     trainer and the eval CLI use): one short sample on this machine varies by
-    a quarter from run to run.
+    a quarter from run to run. Also the CPU ms per step, which depends less
+    on what else runs on the machine than the rate does.
     """
     model = InferenceModel.load(weights)
     env = ParamEnv(model.family, seed=0, episode_steps=steps)
-    rates = []
+    rates, cpu_start, total = [], time.process_time(), 0
     for sample in range(samples):
         start = time.perf_counter()
         record = run_episode(model, model.family, env.param_value, seed=sample, env=env)
         rates.append(len(record.actions) / (time.perf_counter() - start))
-    return float(np.median(rates))
+        total += len(record.actions)
+    return float(np.median(rates)), 1e3 * (time.process_time() - cpu_start) / total
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process so far (all its threads)."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rpartition(')')[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 class Observer:
@@ -75,8 +87,9 @@ class Observer:
     from the loop it measures.
     """
 
-    def __init__(self, node):
+    def __init__(self, node, graph_pids: dict[str, int]):
         self.node = node
+        self.graph_pids = graph_pids   # name -> pid of each process of the graph measured
         self.state_at: dict[int, float] = {}
         self.command_at: dict[int, float] = {}
         self.steps: list[tuple[float, StepInfo]] = []
@@ -128,7 +141,13 @@ def lockstep_figures(observer: Observer, reset_client, param_client, param_name:
         lambda: any(any(m.applied_action) for _, m in observer.steps[-3:]), 60.0)
     if not closed:
         raise RuntimeError('the loop never closed')
+    cpu_before = {name: cpu_seconds(pid) for name, pid in observer.graph_pids.items()}
+    observer_before, steps_before = time.process_time(), len(observer.steps)
     rates = [episode_rate(observer, reset_client, seed) for seed in range(episodes)]
+    steps = len(observer.steps) - steps_before
+    cpu = {f'cpu_ms_per_step_{name}': 1e3 * (cpu_seconds(pid) - cpu_before[name]) / steps
+           for name, pid in observer.graph_pids.items()}
+    cpu['cpu_ms_per_step_observer'] = 1e3 * (time.process_time() - observer_before) / steps
     latencies = np.array([observer.command_at[s] - observer.state_at[s]
                           for s in observer.state_at if s in observer.command_at
                           and observer.command_at[s] > observer.state_at[s]]) * 1e3
@@ -141,7 +160,7 @@ def lockstep_figures(observer: Observer, reset_client, param_client, param_name:
         observer.spin_until(lambda v=value: observer.steps[-1][1].param_values[0] == v, 10.0)
         first = next(t for t, m in observer.steps if t >= sent and m.param_values[0] == value)
         swap_ms.append((first - sent) * 1e3)
-    return {'lockstep_steps_per_s': float(np.median(rates)),
+    return {**cpu, 'lockstep_steps_per_s': float(np.median(rates)),
             'lockstep_steps_per_s_min': min(rates), 'lockstep_steps_per_s_max': max(rates),
             'lockstep_episodes': episodes,
             'latency_ms_p50': float(np.percentile(latencies, 50)),
@@ -188,13 +207,14 @@ def realtime_figures(observer: Observer, param_client, seconds: float, period_s:
             'late_commands': late_commands}
 
 
-def run_graph(weights: Path, mode: str, measure, thread_priority: int = 0) -> dict:
+def run_graph(weights: Path, mode: str, measure, thread_priority: int = 0,
+              composed: bool = False) -> dict:
     bringup = Bringup(node_commands(bringup_args([
         '--weights', str(weights), '--mode', mode, '--log-level', 'warn',
-        '--thread-priority', str(thread_priority)])))
+        '--thread-priority', str(thread_priority), *(['--composed'] if composed else [])])))
     rclpy.init()
     node = rclpy.create_node('zeus_bench')
-    observer = Observer(node)
+    observer = Observer(node, {name: proc.pid for name, proc in bringup.procs.items()})
     gc.freeze()   # as the nodes do: a full collection would stall the observer
     try:
         return measure(observer, node)
@@ -205,7 +225,7 @@ def run_graph(weights: Path, mode: str, measure, thread_priority: int = 0) -> di
         bringup.stop()
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--weights', type=Path, required=True)
     parser.add_argument('--realtime-weights', type=Path,
@@ -224,20 +244,50 @@ def main(argv=None) -> int:
     parser.add_argument('--compare-normal-scheduler', action='store_true',
                         help='run the realtime part a second time under the normal '
                              'scheduler (figures prefixed normal_sched_)')
+    parser.add_argument('--composed', action='store_true',
+                        help='measure lockstep a second time with the three nodes composed '
+                             'in one process (figures prefixed composed_)')
+    parser.add_argument('--transports', nargs='*', default=[], metavar='NAME',
+                        help='measure three-process lockstep again under each '
+                             'FASTDDS_BUILTIN_TRANSPORTS value (SHM, UDPv4...; figures '
+                             'prefixed with it)')
+    parser.add_argument('--lockstep-only', action='store_true',
+                        help='skip the realtime part')
     parser.add_argument('--json', type=Path, help='write the figures here')
-    args = parser.parse_args(argv)
-    metadata = load_metadata(args.weights)
-    figures = {'weights': str(args.weights), 'family': metadata['family'],
-               'machine': f'{os.cpu_count()} cores', 'load_avg_start': os.getloadavg()[0]}
-    figures['inprocess_steps_per_s'] = in_process_rate(args.weights, args.inprocess_steps)
+    return parser.parse_args(argv)
 
+
+def lockstep_runs(args) -> list[tuple[str, bool, str | None]]:
+    """(figure prefix, composed, FASTDDS_BUILTIN_TRANSPORTS or None) of each lockstep run."""
+    runs = [('', False, None)] + [('composed_', True, None)] * args.composed
+    return runs + [(f'{name.lower()}_', False, name) for name in args.transports]
+
+
+def lockstep_part(args, metadata: dict, figures: dict) -> None:
+    """Run each lockstep measurement; ratios to the in-process rate measured first."""
     def lockstep(observer, node):
         return lockstep_figures(observer, node.create_client(Reset, '/sim_node/reset'),
                                 node.create_client(SetParameters, '/sim_node/set_parameters'),
                                 metadata['param_name'], args.swaps, args.episodes)
-    figures.update(run_graph(args.weights, 'lockstep', lockstep))
-    figures['lockstep_ratio_to_inprocess'] = (figures['lockstep_steps_per_s']
-                                              / figures['inprocess_steps_per_s'])
+    for prefix, composed, transports in lockstep_runs(args):
+        saved = os.environ.get('FASTDDS_BUILTIN_TRANSPORTS')
+        if transports is not None:   # the node processes and this observer alike
+            os.environ['FASTDDS_BUILTIN_TRANSPORTS'] = transports
+        try:
+            found = run_graph(args.weights, 'lockstep', lockstep, composed=composed)
+        finally:
+            os.environ.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
+            if saved is not None:
+                os.environ['FASTDDS_BUILTIN_TRANSPORTS'] = saved
+        found['lockstep_ratio_to_inprocess'] = (found['lockstep_steps_per_s']
+                                                / figures['inprocess_steps_per_s'])
+        figures.update({prefix + key: value for key, value in found.items()})
+    # The machine's drift over the lockstep runs (the ratios use the first figure).
+    figures['inprocess_steps_per_s_after'] = in_process_rate(args.weights,
+                                                             args.inprocess_steps)[0]
+
+
+def realtime_part(args, figures: dict) -> None:
     rt_weights = args.realtime_weights or args.weights
     rt_meta = load_metadata(rt_weights)
     period = float(rt_meta['control_timestep'])
@@ -254,13 +304,30 @@ def main(argv=None) -> int:
         normal = run_graph(rt_weights, 'realtime', realtime, thread_priority=0)
         figures.update({f'normal_sched_{key}': value for key, value in normal.items()
                         if key != 'realtime_seconds'})
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    metadata = load_metadata(args.weights)
+    figures = {'weights': str(args.weights), 'family': metadata['family'],
+               'machine': f'{os.cpu_count()} cores', 'load_avg_start': os.getloadavg()[0]}
+    figures['inprocess_steps_per_s'], figures['inprocess_cpu_ms_per_step'] = in_process_rate(
+        args.weights, args.inprocess_steps)
+    lockstep_part(args, metadata, figures)
+    if not args.lockstep_only:
+        realtime_part(args, figures)
+    return report(figures, args.json)
+
+
+def report(figures: dict, json_path: Path | None) -> int:
+    """Print the figures as a table and write them as JSON to `json_path` (if given)."""
     figures['load_avg_end'] = os.getloadavg()[0]
     width = max(len(k) for k in figures)
     for key, value in figures.items():
         text = f'{value:.3f}' if isinstance(value, float) else str(value)
         print(f'{key:<{width}}  {text}')
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2))
+    if json_path:
+        json_path.write_text(json.dumps(figures, indent=2))
     return 0
 
 

@@ -20,9 +20,9 @@ FAMILY = 'walker-walk-slippery'
 QUICK = ReportConfig(episodes=1, max_steps=40, swap_step=20, swap_steps=40)
 
 
-def train_tiny(tmp_path_factory, method):
+def train_tiny(tmp_path_factory, method, family=FAMILY):
     out = tmp_path_factory.mktemp(method) / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
+    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', family,
                     '--method', method, '--steps', '150', '--out', str(out), '--eval-every', '0',
                     '--checkpoint-every', '150', '--quiet', '--set', 'init_steps=100',
                     'hidden_dim=32', 'batch_size_per_task=4', 'replay_capacity=2000',
@@ -43,6 +43,11 @@ def sac(tmp_path_factory):
 @pytest.fixture(scope='module')
 def zeus_id(tmp_path_factory):
     return train_tiny(tmp_path_factory, 'zeus-id')
+
+
+@pytest.fixture(scope='module')
+def target_velocity_sac(tmp_path_factory):
+    return train_tiny(tmp_path_factory, 'sac', 'cheetah-run-v1')
 
 
 def test_r_squared_and_swap_coverage_on_known_series():
@@ -69,6 +74,22 @@ def test_sac_report_has_no_context_sections(sac):
     report = build_report(str(sac), QUICK)
     assert report.context_dim == 0 and report.identification is None
     assert report.swaps == [] and report.context_use is None
+
+
+def test_velocity_error_is_measured_per_target_and_bounded_by_the_reward(
+        target_velocity_sac):
+    report = build_report(str(target_velocity_sac), QUICK)
+    spec = ParamEnv('cheetah-run-v1').spec
+    errors = report.velocity_error
+    assert set(errors.per_value) == {str(v) for v in spec.train + spec.interpolation}
+    assert set(errors.mean_per_split) == {'train', 'interpolation'}
+    model = InferenceModel.load(target_velocity_sac)
+    # reward = -|speed - target| - 0.05 |a|^2, so the error is at most minus the mean reward
+    for v in (0.0, 3.0):
+        rec = run_episode(model, 'cheetah-run-v1', v, seed=0, max_steps=40)
+        assert 0.0 <= errors.per_value[str(v)] <= -rec.rewards.mean() + 1e-9
+    assert errors.per_value['3.0'] > errors.per_value['0.0']   # a tiny policy barely moves
+    assert build_report(str(target_velocity_sac), QUICK).velocity_error == errors
 
 
 def test_zeroed_probe_feeds_zero_latents(zeus_id):

@@ -97,6 +97,14 @@ class ContextUse:
 
 
 @dataclass
+class VelocityError:
+    """Target-velocity families: mean |speed - target| over an episode's steps, per target."""
+
+    per_value: dict[str, float]
+    mean_per_split: dict[str, float]
+
+
+@dataclass
 class AdaptationReport:
     """Everything the report measured, JSON-ready."""
 
@@ -109,6 +117,7 @@ class AdaptationReport:
     identification: Identification | None
     swaps: list[SwapResponse]
     context_use: ContextUse | None
+    velocity_error: VelocityError | None = None
 
     def to_json(self) -> str:
         """Indented JSON text of the report."""
@@ -156,6 +165,20 @@ class OtherPhysicsWindow(EpisodeProbe):
 
     def window_transition(self, result):
         return self.counterfactual.reward, self.counterfactual.observation
+
+
+class SpeedRecorder(EpisodeProbe):
+    """Records the robot's forward speed after every step; changes nothing it sees."""
+
+    def __init__(self):
+        self.env, self.speeds = None, []
+
+    def before_step(self, env, action):
+        self.env = env
+
+    def window_transition(self, result):
+        self.speeds.append(float(self.env.physics.speed()))
+        return result.reward, result.observation
 
 
 # -- measures ----------------------------------------------------------------------
@@ -230,6 +253,27 @@ def swap_responses(model, spec, cfg: ReportConfig) -> list[SwapResponse]:
     return out
 
 
+def velocity_error(model, spec, cfg: ReportConfig) -> VelocityError:
+    """Return the mean absolute speed error per target value and per split.
+
+    The issue's figure for cheetah-run-v1, whose return is negative by construction.
+    """
+    per_value, per_split = {}, {}
+    for split in ('train', *HELD_OUT):
+        errors = []
+        for v in spec.split(split):
+            recorders = [SpeedRecorder() for _ in range(cfg.episodes)]
+            for e, recorder in enumerate(recorders):
+                run_episode(model, model.family, v, cfg.seed + e, max_steps=cfg.max_steps,
+                            probe=recorder)
+            speeds = np.concatenate([r.speeds for r in recorders])
+            per_value[str(v)] = float(np.mean(np.abs(speeds - v)))
+            errors.append(per_value[str(v)])
+        if errors:
+            per_split[split] = float(np.mean(errors))
+    return VelocityError(per_value, per_split)
+
+
 def farthest_train_value(spec, value: float) -> float:
     """Return the training value farthest from `value` (the most different physics seen)."""
     return max(spec.train, key=lambda t: abs(t - value))
@@ -274,7 +318,9 @@ def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
         context_dim=model.context_dim, returns=split_returns(model, spec, cfg, records),
         identification=identification(model, held_out, records) if has_context else None,
         swaps=swap_responses(model, spec, cfg) if has_context else [],
-        context_use=context_use(model, spec, cfg, records) if has_context else None)
+        context_use=context_use(model, spec, cfg, records) if has_context else None,
+        velocity_error=velocity_error(model, spec, cfg)
+        if spec.param_name == 'target_velocity' else None)
 
 
 def print_report(report: AdaptationReport) -> None:
@@ -283,6 +329,10 @@ def print_report(report: AdaptationReport) -> None:
           f'from {report.weights}')
     for r in report.returns:
         print(f'  return {r.split:<14} {r.mean:8.1f} +- {r.sem:5.1f}')
+    if report.velocity_error is not None:
+        errors = report.velocity_error.mean_per_split
+        print('  mean |speed - target|, m/s: ' + ', '.join(
+            f'{split} {error:.3f}' for split, error in errors.items()))
     if report.identification is None:
         print('  no latent: identification, swaps and context use do not apply')
         return

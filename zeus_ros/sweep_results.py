@@ -20,7 +20,7 @@ the sweep folder:
 from __future__ import annotations
 
 import csv
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 import json
 from pathlib import Path
 
@@ -98,6 +98,8 @@ class ReportFigures:
     split_returns: dict[str, list[float]]   # split -> mean return over its values, per seed
     r2: list[float]
     largest_gap: list[float]
+    # target-velocity families: split -> mean |speed - target| (m/s), per seed
+    velocity_error: dict[str, list[float]] = field(default_factory=dict)
 
 
 def run_report(run: Path, episodes: int, steps: int) -> dict | None:
@@ -131,6 +133,9 @@ def adaptation_figures(cfg: SweepConfig, episodes: int = 2) -> dict:
                     continue
                 for split in report['returns']:
                     figures.split_returns.setdefault(split['split'], []).append(split['mean'])
+                for split, error in (report.get('velocity_error') or {}).get(
+                        'mean_per_split', {}).items():
+                    figures.velocity_error.setdefault(split, []).append(error)
                 if report['identification'] is not None:
                     figures.r2.append(report['identification']['r2_per_step'])
                     figures.largest_gap.append(report['context_use']['largest_gap'])
@@ -179,6 +184,20 @@ def _report_table(family: str, methods: list[str], figures: dict) -> list[str]:
         lines.append(f'| {method} | ' + ' | '.join(
             _cell(fig.split_returns.get(s, [])) for s in SPLIT_ORDER) +
             f' | {seeds} | {_cell(fig.r2, 2)} | {_cell(fig.largest_gap)} |')
+    return [*lines, '', *_velocity_table(family, reported, figures)]
+
+
+def _velocity_table(family: str, methods: list[str], figures: dict) -> list[str]:
+    with_error = [m for m in methods if figures[(family, m)].velocity_error]
+    if not with_error:
+        return []
+    lines = ["Mean |speed - target| over each split's targets, m/s (lower is better):", '',
+             '| method | ' + ' | '.join(SPLIT_ORDER) + ' |',
+             '|---' * (len(SPLIT_ORDER) + 1) + '|']
+    for method in with_error:
+        errors = figures[(family, method)].velocity_error
+        lines.append(f'| {method} | ' + ' | '.join(
+            _cell(errors.get(s, []), 3) for s in SPLIT_ORDER) + ' |')
     return [*lines, '']
 
 

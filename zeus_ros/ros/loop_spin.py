@@ -176,7 +176,8 @@ def spin_loop(node: Node, *more: Node) -> None:
     services.start()
     subscriptions = [sub for each in nodes for sub in loop_subscriptions(each)]
     try:
-        _loop(context, lock, wake_loop, _earliest_deadline(nodes), subscriptions, errors)
+        _loop(context, lock, wake_loop, _earliest_deadline(nodes), subscriptions, errors,
+              sweep=len(nodes) > 1)
     except Exception:
         if context.ok():
             raise
@@ -199,7 +200,8 @@ def _earliest_deadline(nodes) -> Callable[[], LoopDeadline | None]:
     return earliest
 
 
-def _loop(context, lock, wake_loop, deadline_of, subscriptions, errors) -> None:
+def _loop(context, lock, wake_loop, deadline_of, subscriptions, errors,
+          sweep: bool = False) -> None:
     """Wait for loop messages or the deadline and dispatch them, until shutdown or an error."""
     wait_set = _rclpy.WaitSet(len(subscriptions), 1, 0, 0, 0, 0, context.handle)
     while context.ok() and not errors:
@@ -220,9 +222,29 @@ def _loop(context, lock, wake_loop, deadline_of, subscriptions, errors) -> None:
             wait_set.add_subscription(subscription.handle)
         wait_set.add_guard_condition(wake_loop)
         wait_set.wait(int(timeout * 1e9))
-        ready = wait_set.get_ready_entities('subscription')
-        if ready and context.ok():
-            with lock:
-                for subscription in subscriptions:
-                    if subscription.handle.pointer in ready:
-                        _take_all(subscription)
+        if context.ok():
+            _dispatch(wait_set, lock, subscriptions, sweep)
+
+
+def _dispatch(wait_set, lock, subscriptions, sweep: bool) -> None:
+    """Deliver what the wait found; with `sweep`, try every subscription in order.
+
+    Nodes of one process (composition) hand each other their messages inside
+    the publishing call, so a subscription later in the order has a message
+    that the wait did not report: trying every one, in the order a control
+    step crosses the nodes, carries a whole step per wake-up (composed: 608-627
+    against 494-521 steps/s in one run). A lone node only takes what the wait
+    reported: its peers are other processes, and the tries found too little
+    (343-402 against 448-452 steps/s, same run).
+    """
+    if sweep:
+        with lock:
+            for subscription in subscriptions:
+                _take_all(subscription)
+        return
+    ready = wait_set.get_ready_entities('subscription')
+    if ready:
+        with lock:
+            for subscription in subscriptions:
+                if subscription.handle.pointer in ready:
+                    _take_all(subscription)

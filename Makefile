@@ -39,6 +39,8 @@ clean:
 
 # Benchmarks (see BENCHMARKS.md). REALTIME_SECONDS=600 for the 10-minute realtime goal.
 REALTIME_SECONDS ?= 60
+# The trainer's speed is reported as a ratio to this commit (issue 13's starting point).
+TRAINER_BASELINE ?= ad864f5
 bench: setup
 	$(IN_WS) python bench/bench_hop.py
 	$(IN_WS) python bench/bench_loop.py --weights weights/walker-walk-v0-zeus --composed \
@@ -46,6 +48,7 @@ bench: setup
 	  --realtime-weights weights/cheetah-run-v0-zeus --realtime-seconds $(REALTIME_SECONDS) \
 	  --compare-normal-scheduler --json bench/results_loop.json
 	$(IN_WS) python bench/bench_trainer.py --profile cpu --threads 2 1
+	$(IN_WS) python bench/bench_trainer_ab.py --baseline $(TRAINER_BASELINE) --rounds 3 --threads 1
 
 # Soak (issue 17): lockstep loop, a live swap every 10 s, a kill -9 and restart
 # of each node; figures per minute and the goals' pass/fail (bench/soak.py).

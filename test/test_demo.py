@@ -10,11 +10,14 @@ import sys
 
 from conftest import REPO
 from PIL import Image
+import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
 from bag_helpers import assert_consistent, assert_loop_qos, read_bag, robot_pixels
 from zeus_msgs.msg import StepInfo
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.demo import check_episode, DemoFailure, loop_closed, RECORDED_TOPICS
+from zeus_ros.evaluate import run_episode
 
 pytestmark = pytest.mark.ros   # starts processes of its own
 
@@ -90,6 +93,25 @@ def test_demo_runs_a_whole_episode_twice_and_records_every_step(small_checkpoint
         assert (gif.n_frames, gif.size) == (51, (320, 240))   # steps 0, 20, ..., 1000
         gif.seek(25)
         assert robot_pixels(gif) > 500
+
+
+def test_composed_demo_records_every_message_and_is_the_in_process_episode(small_checkpoint,
+                                                                           tmp_path):
+    # The fastest mode: the three nodes in one process. The recorder must keep up,
+    # and the episode is the in-process one whose swaps come a step earlier (the
+    # demo puts a swap into force before the step INTO its state).
+    out = tmp_path / 'demo_out'
+    result = run_demo('--weights', small_checkpoint, '--schedule', SCHEDULE, '--out', out,
+                      '--video-every', 0, '--composed')
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert 'the three nodes in one process' in result.stdout
+    by_step = check_demo_bag(out / 'demo')
+    swaps = {int(step) - 1: float(value) for step, value in
+             (item.split(':') for item in SCHEDULE.split(',')[1:])}
+    expected = run_episode(InferenceModel.load(small_checkpoint), 'walker-walk-v0', 1.0, 0,
+                           swap_schedule=swaps)
+    np.testing.assert_array_equal([by_step[n].reward for n in range(1, 1001)],
+                                  expected.rewards)
 
 
 def test_demo_fails_loudly_when_out_of_time(small_checkpoint, tmp_path):

@@ -127,6 +127,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     # Every 5th: 201 frames, 5-25 s of software rendering here (idle to loaded).
     parser.add_argument('--video-every', type=int, default=5,
                         help='render every Nth step into demo.gif (0: no video)')
+    parser.add_argument('--composed', action='store_true',
+                        help='run the three nodes in one process (bringup --composed)')
     return parser.parse_args(argv)
 
 
@@ -410,13 +412,20 @@ class DemoRun:
                          self.recorder.counts, self.recorder.bag.bag_dir)
 
 
-def graph_commands(weights: Path, seed: int) -> dict[str, list[str]]:
-    """Return the three nodes' command lines: lockstep, the policy's output to the gate."""
+def graph_commands(weights: Path, seed: int, composed: bool = False) -> dict[str, list[str]]:
+    """Return the nodes' command lines: lockstep, the policy's output to the gate.
+
+    `composed`: one process runs the three nodes (bringup --composed); the
+    remapping then names the policy node, so only its commands go to the gate.
+    """
     commands = node_commands(bringup_args(
         ['--weights', str(weights), '--mode', 'lockstep', '--seed', str(seed),
          '--command-timeout', str(COMMAND_TIMEOUT_S), '--context-timeout',
-         str(CONTEXT_TIMEOUT_S), '--log-level', 'warn']))
-    commands['policy_node'] += ['-r', f'/joint_commands:={POLICY_COMMANDS}']
+         str(CONTEXT_TIMEOUT_S), '--log-level', 'warn', *(['--composed'] * composed)]))
+    if composed:
+        commands['composed'] += ['-r', f'policy_node:/joint_commands:={POLICY_COMMANDS}']
+    else:
+        commands['policy_node'] += ['-r', f'/joint_commands:={POLICY_COMMANDS}']
     return commands
 
 
@@ -431,7 +440,7 @@ def fresh_bag_dir(path: Path) -> Path:
 
 def run_graph(policy: Policy, args: argparse.Namespace, bag_dir: Path) -> RunRecord:
     """Bring the three nodes up with `policy`, run the episode, bring them down."""
-    bringup = Bringup(graph_commands(policy.weights, args.seed))
+    bringup = Bringup(graph_commands(policy.weights, args.seed, args.composed))
     context = rclpy.Context()   # one per graph: its shutdown ends this run's receiver
     rclpy.init(context=context)
     node = rclpy.create_node('zeus_demo', context=context)
@@ -574,7 +583,8 @@ def report(args: argparse.Namespace, segments: list[Segment], runs: list[RunReco
     """Print what ran, the table of segments, and where the outputs are."""
     adaptive = runs[0]
     name, reference = adaptive.policy.param_name, len(runs) > 1
-    print(f'\n{adaptive.policy.family} through ROS 2 in lockstep, seed {args.seed}, '
+    mode = 'lockstep, the three nodes in one process' if args.composed else 'lockstep'
+    print(f'\n{adaptive.policy.family} through ROS 2 in {mode}, seed {args.seed}, '
           f'{name} schedule {args.schedule}')
     for run in runs:
         print(f'{run.policy.label:<9} {run.policy.weights} ({_policy_name(run.policy)}): '

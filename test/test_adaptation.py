@@ -67,7 +67,7 @@ def test_oracle_report_identifies_exactly_and_reacts_at_once(oracle):
     assert report.identification.r2_per_step == pytest.approx(1.0)
     assert all(s.steps_to_70pct == 0 for s in report.swaps)
     assert {r.split for r in report.returns} == {'train', 'interpolation', 'extrapolation'}
-    assert report.context_use is not None
+    assert report.context_use.split == 'extrapolation'
 
 
 def test_sac_report_has_no_context_sections(sac):

@@ -15,8 +15,9 @@ order of operations of the ROS loop):
    control steps until the estimate has covered 70 % of the true change
    (from its mean over the 50 steps before the swap), or None if it never does;
 4. **context use**, at the extrapolation values (where a context is needed if
-   anywhere): the return when the latent is zeroed, frozen at the latent of
-   another value's episode, or inferred from window transitions simulated
+   anywhere; at the interpolation values for a family without extrapolation):
+   the return when the latent is zeroed, frozen at the latent of another
+   value's episode, or inferred from window transitions simulated
    under another value (same states and actions, other physics). The other
    value is the train value farthest from the true one. A policy that ignores
    the parameter shows no gap: the report says so.
@@ -88,6 +89,7 @@ class SwapResponse:
 class ContextUse:
     """Mean return at the extrapolation values, intact and with the context perturbed."""
 
+    split: str      # where it was measured: extrapolation, or interpolation if a family has none
     intact: float
     zeroed: float
     frozen_other: float
@@ -281,7 +283,8 @@ def farthest_train_value(spec, value: float) -> float:
 
 def context_use(model, spec, cfg: ReportConfig, records: dict) -> ContextUse:
     """Measure returns at the extrapolation values, context intact and perturbed."""
-    values = spec.extrapolation or spec.split('interpolation')
+    split = 'extrapolation' if spec.extrapolation else 'interpolation'
+    values = spec.split(split)
     rows = {'intact': [], 'zeroed': [], 'frozen_other': [], 'inferred_other': []}
     for v in values:
         other = farthest_train_value(spec, v)
@@ -296,7 +299,7 @@ def context_use(model, spec, cfg: ReportConfig, records: dict) -> ContextUse:
                                        for r in _episodes(model, v, cfg, factory)]))
     means = {k: float(np.mean(v)) for k, v in rows.items()}
     gap = max(means['intact'] - means[k] for k in ('zeroed', 'frozen_other', 'inferred_other'))
-    return ContextUse(**means, largest_gap=gap, verdict=_verdict(means['intact'], gap))
+    return ContextUse(split, **means, largest_gap=gap, verdict=_verdict(means['intact'], gap))
 
 
 def _verdict(intact: float, gap: float) -> str:
@@ -343,7 +346,7 @@ def print_report(report: AdaptationReport) -> None:
         print(f'  swap {s.from_value:g} -> {s.to_value:g}: 70 % covered after '
               f'{f"{s.steps_to_70pct} steps" if s.steps_to_70pct is not None else "never"}')
     use = report.context_use
-    print(f'  extrapolation return: intact {use.intact:.1f}, zeroed {use.zeroed:.1f}, '
+    print(f'  {use.split} return: intact {use.intact:.1f}, zeroed {use.zeroed:.1f}, '
           f'frozen at other value {use.frozen_other:.1f}, '
           f'inferred from other physics {use.inferred_other:.1f}')
     print(f'  policy {use.verdict}')

@@ -21,12 +21,14 @@ test: setup
 test-unit: setup
 	$(IN_WS) python -m pytest -q -m unit test
 
-# The friction family where the feet slip: a context method beside the context-free
-# reference (sac), through the same graph, frictions from inside the training range
-# to both sides of it (0.06 and 0.5 are extrapolation values).
-DEMO_WEIGHTS ?= weights/walker-walk-slippery-zeus
-DEMO_REFERENCE ?= $(wildcard weights/walker-walk-slippery-sac)
-DEMO_SCHEDULE ?= 0:0.25,333:0.06,666:0.5
+# The target-velocity cheetah (cheetah-run-v1), where a context is needed by
+# construction: zeus-id, whose decoded target follows each swap, beside the
+# context-free reference (sac) through the same graph. The friction walker:
+# DEMO_WEIGHTS=weights/walker-walk-slippery-zeus
+# DEMO_REFERENCE=weights/walker-walk-slippery-sac DEMO_SCHEDULE=0:0.25,333:0.06,666:0.5
+DEMO_WEIGHTS ?= weights/cheetah-run-v1-zeus-id
+DEMO_REFERENCE ?= $(wildcard weights/cheetah-run-v1-sac)
+DEMO_SCHEDULE ?= 0:0.5,333:2.5,666:1.2
 demo: setup
 	$(IN_WS) python -m zeus_ros.demo --weights $(DEMO_WEIGHTS) --out demo_out \
 	  --schedule $(DEMO_SCHEDULE) $(if $(DEMO_REFERENCE),--reference-weights $(DEMO_REFERENCE))

@@ -110,7 +110,9 @@ class LockstepDriver:
 # -- the three-node loop, shared by the closed-loop tests ------------------------------
 FAMILY = 'walker-walk-v0'
 WALKER_WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
-COLLECT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+# Deep enough for a whole episode (1001 states) and the warm-up before it, should
+# a loaded test fall seconds behind the loop: keep-last drops the oldest.
+COLLECT_QOS = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def start_node(spawn, name, params):
@@ -143,15 +145,19 @@ def wait_loop_running(ros_node, steps, timeout=60.0):
 def episode_rewards(ros_node, driver, steps, seed: int, friction: float) -> list[float]:
     """Rewards of one full episode from a reset, once the loop runs (`steps`: collected)."""
     wait_loop_running(ros_node, steps)
-    driver.reset(seed=seed, params={'friction': friction})
-    episode = driver.steps[driver.current].episode
+    # The episode number comes from the reset's answer: its first state may be
+    # pushed out of the driver's queue by the loop's hundreds of steps per second
+    # before a loaded test takes it in (`steps` is deep enough for every one).
+    episode = reset_episode(driver.reset_client,
+                            lambda done, seconds: spin_until(ros_node, done, seconds),
+                            seed, {'friction': friction}, driver.timeout)
 
     def finished():
         return any((s.episode == episode and s.truncated) or s.episode > episode
                    for s in steps[-5:])
     assert spin_until(ros_node, finished, 120.0), 'the episode did not finish through ROS'
     rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
-    assert len(rewards) == 1000
+    assert len(rewards) == 1000, (episode, len(rewards), sorted({s.episode for s in steps}))
     return rewards
 
 

@@ -54,13 +54,19 @@ def test_policy_killed_then_restarted(loop, ros_node, spawn, small_checkpoint):
     driver.reset(seed=1)
     assert spin_until(ros_node, lambda: len(steps) > 50, 30.0)
     procs['policy_node'].stop()
-    mark = len(steps)
+    # An episode begun after the policy exited: none of its states reached the
+    # policy. (A length of `steps` taken now is no such mark: the steps the old
+    # policy controlled but this test had not yet taken in come after it.)
+    driver.reset(seed=2)
+    episode = driver.steps[driver.current].episode
+
+    def stepped():
+        return [s for s in steps if s.episode == episode]
     # Without a policy the sim times out (0.3 s) and applies zero actions, still stepping.
-    assert spin_until(ros_node, lambda: len(steps) > mark + 5, 30.0), 'the sim stopped'
-    assert all(not any(s.applied_action) for s in steps[mark + 2:])
+    assert spin_until(ros_node, lambda: len(stepped()) > 5, 30.0), 'the sim stopped'
+    assert not any(any(s.applied_action) for s in stepped())
     start_node(spawn, 'policy_node', {'weights': small_checkpoint})
-    mark = len(steps)
-    assert spin_until(ros_node, lambda: any(any(s.applied_action) for s in steps[mark:]),
+    assert spin_until(ros_node, lambda: any(any(s.applied_action) for s in stepped()),
                       60.0), 'control did not resume after the policy restarted'
 
 

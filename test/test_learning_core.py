@@ -482,3 +482,30 @@ def test_the_ablation_refuses_a_context_loss_weight_at_configuration():
     assert tiny_config('zeus-no-context-loss').alpha_psi == 0.0
     with pytest.raises(ValueError, match='alpha_psi = 0 ablation'):
         tiny_config('zeus-no-context-loss', alpha_psi=1.0)
+
+
+def test_a_method_with_its_own_update_must_say_so():
+    from zeus_ros.core.methods.base import ContextMethod
+
+    with pytest.raises(TypeError, match='has_own_update'):
+        class Forgetful(ContextMethod):   # noqa: F841 (defining it is the test)
+            def update(self, batch, z, step):
+                return {}
+
+    class Declared(ContextMethod):
+        has_own_update = True
+
+        def update(self, batch, z, step):
+            return {}
+    assert Declared.has_own_update
+
+
+@pytest.mark.parametrize('method', ALL_METHODS)
+def test_the_method_update_runs_exactly_when_the_method_has_one(method, monkeypatch):
+    agent, b = make_agent(method, context_length=K), make_batch()
+    calls = []
+    real = agent.method.update
+    monkeypatch.setattr(agent.method, 'update', lambda *a: calls.append(1) or real(*a))
+    agent.update(b)
+    assert len(calls) == (1 if agent.method.has_own_update else 0)
+    assert agent.method.has_own_update == (method not in ('sac', 'oracle'))

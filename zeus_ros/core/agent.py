@@ -216,10 +216,11 @@ class Agent:
         if n % cfg.critic_target_update_freq == 0:
             soft_update_all(self, cfg)
             t = self._tick('target', t)
-        with torch.no_grad():  # the method's models read phi as the critic step left it
-            z_now = self.phi(b.obs)
-        metrics.update(self.method.update(b, z_now, n))
-        self._tick('method', t)
+        if self.method.has_own_update:
+            with torch.no_grad():  # the method's models read phi as the critic step left it
+                z_now = self.phi(b.obs)
+            metrics.update(self.method.update(b, z_now, n))
+            self._tick('method', t)
         return metrics
 
 

@@ -73,8 +73,16 @@ class ContextMethod:
     needs_true_param: ClassVar[bool] = False
     # The critic's TD loss back-propagates into the context encoder.
     critic_trains_context: ClassVar[bool] = False
+    # The method has losses of its own: `update` runs (and phi(s) is computed for it).
+    has_own_update: ClassVar[bool] = False
     # Config fields this method presets (a user's --set still wins).
     config_defaults: ClassVar[dict] = {}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        # A method that writes `update` but leaves the flag off would never train.
+        if cls.update is not ContextMethod.update and not cls.has_own_update:
+            raise TypeError(f'{cls.__name__} defines update(): set has_own_update = True')
 
     def __init__(self, cfg: 'ZeusConfig', dims: Dims, param: ParamScale, training: bool = True):
         self.cfg, self.dims, self.param = cfg, dims, param

@@ -94,6 +94,7 @@ class StandardisedContextEncoder(nn.Module):
 class EncoderMethod(ContextMethod):
     """psi over the window, the method's models, one optimiser on its loss, a decoder probe."""
 
+    has_own_update = True
     has_decoder = True
 
     def __init__(self, cfg, dims, param, training=True):

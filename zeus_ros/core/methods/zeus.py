@@ -31,6 +31,7 @@ class ZeusMethod(ContextMethod):
     """Equation 2 on phi-space models; the critic also trains psi."""
 
     name = 'zeus'
+    has_own_update = True
     critic_trains_context = True
 
     def __init__(self, cfg, dims, param, training=True):

@@ -129,3 +129,11 @@ def test_csv_log_keeps_the_header_a_resumed_run_started_with(tmp_path):
     resumed.write({'a': 3, 'new': 9, 'b': 4})
     resumed.close()
     assert list(csv.DictReader(open(path))) == [{'a': '1', 'b': '2'}, {'a': '3', 'b': '4'}]
+
+
+def test_repeated_set_options_accumulate_the_last_value_of_a_field_wins():
+    # The training queue appends its own --set num_threads=1 to each job's line.
+    ns = train.build_parser().parse_args(['--out', 'x', '--set', 'batch_size_per_task=16',
+                                    'init_steps=7', '--set', 'num_threads=1', 'init_steps=9'])
+    assert train.RunArgs.from_cli(ns).overrides == {'batch_size_per_task': 16, 'init_steps': 9,
+                                              'num_threads': 1}

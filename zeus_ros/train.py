@@ -132,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='context method (zeus_ros.core.methods)')
     p.add_argument('--alpha-psi', type=float, default=None,
                    help='context-loss weight (default: Table 11); 0 = no-context-loss')
-    p.add_argument('--set', nargs='*', default=[], metavar='KEY=VALUE',
+    p.add_argument('--set', nargs='*', action='extend', default=[], metavar='KEY=VALUE',
                    help='override any ZeusConfig field (see zeus_ros.core.config)')
     p.add_argument('--eval-every', type=int, default=10_000, help='timesteps; 0 = never')
     p.add_argument('--eval-episodes', type=int, default=1, help='episodes per value')

@@ -34,10 +34,13 @@ class _Timed:
 
 
 def run(family: str, profile: str, timesteps: int, warmup: int,
-        threads: int | None = None, method: str = 'zeus') -> dict:
-    """Measure `timesteps` steady-state timesteps; return the figures."""
+        threads: int | None = None, method: str = 'zeus', extra: tuple = ()) -> dict:
+    """Measure `timesteps` steady-state timesteps; return the figures.
+
+    `extra`: more `KEY=VALUE` config overrides (e.g. another batch size).
+    """
     out = Path(tempfile.mkdtemp(prefix='zeus_bench_'))
-    overrides = [f'init_steps={warmup}', 'replay_capacity=100000']
+    overrides = [f'init_steps={warmup}', 'replay_capacity=100000', *extra]
     if threads is not None:
         overrides.append(f'num_threads={threads}')
     args = build_parser().parse_args(['--family', family, '--profile', profile,
@@ -91,10 +94,13 @@ def main(argv=None) -> None:
     p.add_argument('--method', nargs='*', default=['zeus'], help='context methods to compare')
     p.add_argument('--threads', type=int, nargs='*', default=[None],
                    help="torch threads to compare, one run each (default: the profile's)")
+    p.add_argument('--set', nargs='*', default=[], metavar='KEY=VALUE',
+                   help='config overrides for every run (as train --set)')
     args = p.parse_args(argv)
     runs = ((f, t, m) for f in args.family for t in args.threads for m in args.method)
     for family, threads, method in runs:
-        r = run(family, args.profile, args.timesteps, args.warmup, threads, method)
+        r = run(family, args.profile, args.timesteps, args.warmup, threads, method,
+                tuple(args.set))
         print(f"{method} {r['family']} profile={r['profile']} tasks={r['tasks']} "
               f"batch={r['batch']} "
               f"hidden={r['hidden']} threads={r['threads']}: {r['env_steps']} env steps in "

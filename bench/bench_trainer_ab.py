@@ -5,10 +5,16 @@
 Checks the baseline out into a temporary git worktree and runs
 `bench/bench_trainer.py` of each tree in turn (A B A B ..., so that both see
 the same machine in the same minutes), with the same family, profile,
-timesteps and torch threads; prints each run's environment steps per second,
-the medians and the ratio new / old. Only the options the baseline's
-bench_trainer already had are passed. Nothing else may run meanwhile: the
-figure is a rate on a shared 2-core machine.
+method, timesteps and torch threads; prints each run's environment steps per
+second, the medians and the ratio new / old. Only the options the baseline's
+bench_trainer already had are passed to it (`--set` goes to the new tree
+only, to try a setting before it becomes the profile's).
+
+`--pair` then runs two copies of the new tree at once, one thread each (the
+setting when two trainings share the 2 cores), and reports each one's rate
+against the new tree's own median alone: how much two runs slow each other
+beyond what the cores explain. Nothing else may run meanwhile: the figures
+are rates on a shared 2-core machine.
 """
 
 from __future__ import annotations
@@ -40,16 +46,45 @@ def drop_worktree(path: Path) -> None:
                    capture_output=True)
 
 
-def one_run(tree: Path, args) -> float:
-    """Return the environment steps/s of the tree's bench_trainer (its first figure line)."""
+def bench_command(tree: Path, args, new: bool) -> tuple[list, dict]:
+    """Build the bench_trainer command line and environment for one tree."""
     cmd = [sys.executable, 'bench/bench_trainer.py', '--family', args.family, '--profile',
            args.profile, '--timesteps', str(args.timesteps), '--threads', str(args.threads)]
+    if args.method != 'zeus':   # before the plug-ins (884b5ea) every run was zeus
+        if "'--method'" not in (tree / 'bench/bench_trainer.py').read_text():
+            raise SystemExit(f'the tree at {tree} trains zeus only: compare --method zeus')
+        cmd += ['--method', args.method]
+    if new and args.set:
+        cmd += ['--set', *args.set]
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS=str(args.threads))
-    out = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, check=True)
+    return cmd, env
+
+
+def parse_rate(tree: Path, out: subprocess.CompletedProcess) -> float:
     match = RATE.search(out.stdout)
-    if match is None:
-        raise RuntimeError(f'no rate in the output of {tree}:\n{out.stdout}\n{out.stderr}')
+    if out.returncode != 0 or match is None:
+        raise RuntimeError(f'no rate from {tree}:\n{out.stdout}\n{out.stderr}')
     return float(match.group(1))
+
+
+def one_run(tree: Path, args, new: bool) -> float:
+    """Return the environment steps/s of the tree's bench_trainer (its first figure line)."""
+    cmd, env = bench_command(tree, args, new)
+    return parse_rate(tree, subprocess.run(cmd, cwd=tree, env=env, capture_output=True,
+                                           text=True))
+
+
+def pair_run(tree: Path, args) -> list[float]:
+    """Two copies of the new tree's bench at once; their rates."""
+    cmd, env = bench_command(tree, args, new=True)
+    procs = [subprocess.Popen(cmd, cwd=tree, env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    rates = []
+    for proc in procs:
+        stdout, stderr = proc.communicate()
+        rates.append(parse_rate(tree, subprocess.CompletedProcess(
+            proc.args, proc.returncode, stdout, stderr)))
+    return rates
 
 
 def main(argv=None) -> int:
@@ -57,28 +92,43 @@ def main(argv=None) -> int:
     p.add_argument('--baseline', default='ad864f5', help='commit to compare against')
     p.add_argument('--family', default='walker-walk-slippery')
     p.add_argument('--profile', default='cpu')
+    p.add_argument('--method', default='zeus')
     p.add_argument('--timesteps', type=int, default=300)
     p.add_argument('--threads', type=int, default=1)
     p.add_argument('--rounds', type=int, default=3)
+    p.add_argument('--set', nargs='*', default=[], metavar='KEY=VALUE',
+                   help='config overrides for the NEW tree only')
+    p.add_argument('--pair', action='store_true',
+                   help='also run two copies of the new tree at once')
     p.add_argument('--json', type=Path, default=None)
     args = p.parse_args(argv)
     old_tree = worktree(args.baseline)
     rates = {'old': [], 'new': []}
     try:
         for _ in range(args.rounds):
-            rates['old'].append(one_run(old_tree, args))
-            rates['new'].append(one_run(REPO, args))
+            rates['old'].append(one_run(old_tree, args, new=False))
+            rates['new'].append(one_run(REPO, args, new=True))
             print(f"old {rates['old'][-1]:.0f}  new {rates['new'][-1]:.0f} env steps/s")
     finally:
         drop_worktree(old_tree)
     medians = {k: statistics.median(v) for k, v in rates.items()}
     ratio = medians['new'] / medians['old']
-    print(f"{args.family} {args.profile}, {args.threads} thread(s): old ({args.baseline}) "
+    label = f"{args.family} {args.method} {args.profile} {' '.join(args.set)}".strip()
+    print(f"{label}, {args.threads} thread(s): old ({args.baseline}) "
           f"{medians['old']:.0f}, new {medians['new']:.0f} env steps/s (medians of "
           f"{args.rounds}); new / old = {ratio:.2f}")
+    result = {'baseline': args.baseline, 'family': args.family, 'method': args.method,
+              'profile': args.profile, 'set': args.set, 'threads': args.threads,
+              'rates': rates, 'medians': medians, 'ratio': ratio}
+    if args.pair:
+        pair = pair_run(REPO, args)
+        result['pair'] = {'rates': pair, 'alone': medians['new'],
+                          'each_over_alone': [r / medians['new'] for r in pair]}
+        print(f'two at once, one thread each: {pair[0]:.0f} and {pair[1]:.0f} env steps/s = '
+              + ' and '.join(f'{r / medians["new"]:.2f}' for r in pair)
+              + ' of one alone')
     if args.json:
-        args.json.write_text(json.dumps({'baseline': args.baseline, 'rates': rates,
-                                         'medians': medians, 'ratio': ratio}, indent=2))
+        args.json.write_text(json.dumps(result, indent=2))
     return 0
 
 

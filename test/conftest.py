@@ -4,6 +4,7 @@ import fcntl
 import os
 from pathlib import Path
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -72,9 +73,10 @@ class NodeProcess:
 
 
 @pytest.fixture
-def spawn(tmp_path):
+def spawn(tmp_path, request):
     """Start processes that are stopped (SIGINT, then SIGKILL) after the test."""
     started = []
+    request.node.spawned = started   # read by pytest_runtest_makereport on a failure
 
     def _spawn(argv, name='proc', env=None):
         proc = NodeProcess(argv, tmp_path / f'{name}_{len(started)}.log', env)
@@ -155,3 +157,68 @@ def pytest_collection_modifyitems(config, items):
             continue
         uses = set(getattr(item, 'fixturenames', ()))
         item.add_marker('ros' if uses & _ROS_FIXTURES else 'unit')
+
+
+def _stack_dump(pid: int, label: str) -> str:
+    """Every thread's stack of a process, Python and native frames (py-spy), as text."""
+    py_spy = shutil.which('py-spy') or str(Path(sys.executable).parent / 'py-spy')
+    if not Path(py_spy).exists():
+        return f'--- {label} (pid {pid}): py-spy not installed, no stacks\n'
+    text = _run_for_text([py_spy, 'dump', '--native', '--pid', str(pid)])
+    # py-spy shows only the threads running Python; the middleware's own threads
+    # (Fast DDS receive, event and SHM watchdog threads) take a native debugger.
+    gdb = shutil.which('gdb')
+    if gdb:
+        text += '--- all threads, native (gdb) ---\n' + _run_for_text(
+            [gdb, '-p', str(pid), '-batch', '-nx', '-ex', 'set pagination off',
+             '-ex', 'thread apply all bt'])
+    return f'--- {label} (pid {pid}) ---\n{text}\n'
+
+
+def _graph_view(node) -> str:
+    """Describe the test node's graph: per subscription, the matched and discovered writers.
+
+    A writer that is discovered but not matched, or matched but silent, says
+    more about a lost message than any stack.
+    """
+    lines = ["--- the test node's view of the graph ---"]
+    for sub in node.subscriptions:
+        lines.append(f'{sub.topic_name}: {sub.get_publisher_count()} matched publisher(s)')
+        for info in node.get_publishers_info_by_topic(sub.topic_name):
+            gid = ''.join(f'{b:02x}' for b in info.endpoint_gid[:16])
+            lines.append(f'    discovered: {info.node_namespace}/{info.node_name} gid {gid} '
+                         f'{info.qos_profile.reliability.name}')
+    return '\n'.join(lines) + '\n'
+
+
+def _run_for_text(argv) -> str:
+    try:
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+        return done.stdout + done.stderr
+    except subprocess.TimeoutExpired:
+        return f'{argv[0]} timed out\n'
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item, call):
+    """On a failed test, dump the stacks of its processes and of pytest itself.
+
+    This runs after the test body and before its fixtures are torn down: the
+    nodes are still in the state the test failed in (a blocked publish, a stuck
+    wait), and the test's own rclpy node still exists. The dump goes to the
+    test's tmp directory and into the report (shown with the failure).
+    """
+    report = yield
+    spawned = getattr(item, 'spawned', None)
+    if report.when == 'call' and report.failed and spawned:
+        # The graph first: the dumps take seconds, and stop each process a while.
+        node = getattr(item, 'funcargs', {}).get('ros_node')
+        dumps = [_graph_view(node)] if node is not None else []
+        dumps += [_stack_dump(proc.proc.pid, Path(proc.log_path).stem)
+                  for proc in spawned if proc.alive()]
+        dumps.append(_stack_dump(os.getpid(), 'pytest (this process)'))
+        text = ''.join(dumps)
+        path = Path(spawned[0].log_path).parent / 'stacks_at_failure.txt'
+        path.write_text(text)
+        report.sections.append(('stacks at failure', f'(also in {path})\n{text}'))
+    return report

@@ -14,7 +14,7 @@ import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from sim_node.env import ParamEnv
-from sim_driver import collect, FAMILY, start_node, wait_loop_running, WALKER_WEIGHTS
+from sim_driver import collect, COLLECT_QOS, FAMILY, start_node, wait_loop_running, WALKER_WEIGHTS
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.context_node import ContextGuard
 from zeus_ros.ros.util import set_stamp, stamp_ns
@@ -51,38 +51,74 @@ def wait_status(ros_node, diagnostics, node_name, check, timeout=10.0):
     return spin_until(ros_node, found, timeout)
 
 
-def since_clock_restart(messages, start: int) -> list:
-    """Return the messages from the first at or after `start` whose stamp went back.
+class SentAfter:
+    """The messages of one topic that their writer sent after a moment (wall clock).
 
-    One publisher's messages arrive in order, and a restarted sim's clock starts
-    from zero: cutting the list there, not at a length taken at some moment,
-    keeps what the old sim and its controllers sent but this test had not yet
-    taken in (a loaded machine lets a backlog wait) out of the new sim's share.
+    A restarted sim's clock starts from zero, but a stamp that goes back is no
+    sign of the restart for a reader that matches a writer late, and under load
+    this test's readers do: with control the new sim steps about ten times
+    faster than real time, so a reader matched to it a second after the
+    controllers first receives states stamped past the old sim's last one
+    (seen: the first of 3312 stamped 11.500 s, the old sim's last 7.525 s); and
+    a reader matched to the policy only after the kill has no old command to
+    go back from (seen: 0 before the kill). The time a message was sent (its
+    source timestamp) tells them apart whatever the reader missed: the old sim
+    sent nothing after it was killed.
     """
-    for index in range(max(start, 1), len(messages)):
-        if stamp_ns(messages[index].header) < stamp_ns(messages[index - 1].header):
-            return messages[index:]
-    return []
+
+    def __init__(self, ros_node, msg_type, topic, qos):
+        self.messages: list = []       # in arrival order...
+        self.sent_ns: list[int] = []   # ...and when each was sent
+        self.subscription = ros_node.create_subscription(msg_type, topic, self._add, qos)
+        self._after_ns, self._looked_at, self._found = None, 0, []
+
+    def _add(self, msg, info) -> None:
+        self.messages.append(msg)
+        self.sent_ns.append(info['source_timestamp'])
+
+    def since(self, t_ns: int) -> list:
+        """Return the messages sent after `t_ns` (time.time_ns()), in arrival order."""
+        if t_ns != self._after_ns:
+            self._after_ns, self._looked_at, self._found = t_ns, 0, []
+        for index in range(self._looked_at, len(self.messages)):
+            if self.sent_ns[index] > t_ns:
+                self._found.append(self.messages[index])
+        self._looked_at = len(self.messages)
+        return self._found
+
+
+def received_since(messages, start: int) -> str:
+    """Describe what arrived from index `start` on: count, stamps (a failure's message)."""
+    def seconds(msg):
+        return f'{stamp_ns(msg.header) / 1e9:.3f}'
+    after = messages[start:]
+    text = f'{len(after)} messages after the first {start}'
+    if start:
+        text += f' (the last before them stamped {seconds(messages[start - 1])} s)'
+    if after:
+        text += (f'; stamps {", ".join(seconds(m) for m in after[:3])} ... '
+                 f'{", ".join(seconds(m) for m in after[-3:])} s')
+    return text
 
 
 def test_control_comes_back_after_the_sim_is_killed_and_restarted(spawn, ros_node):
-    steps = collect(ros_node, StepInfo, '/zeus/step')
-    commands = collect(ros_node, JointState, '/joint_commands')
+    stepped = SentAfter(ros_node, StepInfo, '/zeus/step', COLLECT_QOS)
+    issued = SentAfter(ros_node, JointState, '/joint_commands', COLLECT_QOS)
     sim = start_node(spawn, 'sim_node', {'family': FAMILY})
     controllers = start_controllers(spawn)
-    wait_loop_running(ros_node, steps)
-    # Run long enough that the old clock is far ahead of the new sim's: without
-    # control the new sim steps twice a second (its 0.5 s command timeout), and
-    # would take minutes to catch up.
-    assert spin_until(ros_node, lambda: len(steps) > 300, 60.0)
+    wait_loop_running(ros_node, stepped.messages)
+    assert spin_until(ros_node, lambda: len(stepped.messages) > 300, 60.0)
     sim.proc.kill()                    # SIGKILL: no goodbye on the graph
     sim.proc.wait()
-    mark, command_mark = len(steps), len(commands)   # the new sim's come after these
+    killed_ns = time.time_ns()         # the new sim's states are those sent after this
+    mark, command_mark = len(stepped.messages), len(issued.messages)  # (failure messages)
 
     def new_steps():
-        return since_clock_restart(steps, mark)
+        return stepped.since(killed_ns)
+    started_ns = time.time_ns()
     start_node(spawn, 'sim_node', {'family': FAMILY})
-    assert spin_until(ros_node, new_steps, 60.0), 'the new sim was not seen'
+    assert spin_until(ros_node, new_steps, 60.0), \
+        f'the new sim was not seen: {received_since(stepped.messages, mark)}'
     seen = time.monotonic()
     assert spin_until(ros_node, lambda: controlled(new_steps()) > 0, 10.0), \
         'control did not come back after the sim restarted'
@@ -93,7 +129,14 @@ def test_control_comes_back_after_the_sim_is_killed_and_restarted(spawn, ros_nod
     took = time.monotonic() - seen
     assert took < 5.0, f'control came back {took:.2f} s after the new sim was seen'
     assert spin_until(ros_node, lambda: controlled(new_steps()) > 100, 20.0)
-    assert any(any(c.effort) for c in since_clock_restart(commands, command_mark))
+    # The policy's commands answering the new sim's states: sent once it was
+    # started (not an answer to an old state still in flight at the kill), and
+    # stamped with a state it sent.
+    new_stamps = {stamp_ns(step.header) for step in new_steps()}
+    answers = [c for c in issued.since(started_ns) if stamp_ns(c.header) in new_stamps]
+    assert any(any(c.effort) for c in answers), \
+        (f'no command with an effort answered the new sim ({len(answers)} answers): '
+         f'{received_since(issued.messages, command_mark)}')
     for name, proc in controllers.items():
         assert proc.alive(), name
         # Warned once, not silent (throttled: one line per kind of event).

@@ -25,7 +25,7 @@ follows vbar + |vbar - T'| (or vbar - |vbar - T'|) rather than T'.
     PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 8 python repro/target_velocity_identifiability.py \
         --runs /work/runs/cv1-zeus-id-s1 /work/runs/cv1-zeus-id-s2 /work/runs/cv1-zeus-id-s3
 
-About 10 CPU-minutes for three checkpoints. Writes
+About 4 CPU-minutes for three checkpoints. Writes
 repro/results/target_velocity_identifiability.md and .csv (per seed, policy
 and target); the per-step records are kept in --cache (not committed), which
 --from-cache re-renders without running episodes.

@@ -42,13 +42,12 @@ from rcl_interfaces.srv import SetParameters  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
-from sim_node.env import ParamEnv  # noqa: E402
 from zeus_msgs.msg import StepInfo  # noqa: E402
 from zeus_msgs.srv import Reset  # noqa: E402
 from zeus_ros.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
 from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
 from zeus_ros.deploy.inference import InferenceModel  # noqa: E402
-from zeus_ros.evaluate import run_episode  # noqa: E402
+from zeus_ros.evaluate import model_env, run_episode  # noqa: E402
 from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
 from zeus_ros.ros.util import call_service, LOOP_QOS, reset_episode, stamp_ns  # noqa: E402
@@ -63,7 +62,7 @@ def in_process_rate(weights: Path, steps: int, samples: int = 5) -> tuple[float,
     on what else runs on the machine than the rate does.
     """
     model = InferenceModel.load(weights)
-    env = ParamEnv(model.family, seed=0, episode_steps=steps)
+    env = model_env(model, episode_steps=steps)
     rates, cpu_start, total = [], time.process_time(), 0
     for sample in range(samples):
         start = time.perf_counter()

@@ -12,11 +12,14 @@ step boundary (the same trajectory as `set_param`).
 The observation is a function of joint positions and velocities only (see
 `ObservationLayout`), so the sim node's `sensor_msgs/JointState` carries
 everything the policy needs, and the vector rebuilt from it is bit-identical.
+With ``reward_in_obs`` the reward of the transition into the state is
+appended (the appendix's choice for reward-varying families); the nodes read
+it from the StepInfo of the state's stamp.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import functools
 import math
 import xml.etree.ElementTree as ElementTree
@@ -216,7 +219,7 @@ class ParamEnv:
     """A dm_control task whose physical parameter can change at a step boundary."""
 
     def __init__(self, family: str, value: float | None = None, seed: int | None = 0,
-                 episode_steps: int = EPISODE_STEPS):
+                 episode_steps: int = EPISODE_STEPS, reward_in_obs: bool = False):
         self.spec = get_family(family)
         self.episode_steps = episode_steps
         self.control_timestep = CONTROL_TIMESTEP[self.spec.domain]
@@ -227,7 +230,8 @@ class ParamEnv:
         self._task = _make_task(self.spec, self._value, self._random)
         self._n_sub_steps = int(round(self.control_timestep / self._physics.model.opt.timestep))
         model = self._physics.model
-        self.layout = layout_from_model(model.ptr)
+        self.layout = replace(layout_from_model(model.ptr), reward_in_observation=reward_in_obs)
+        self._last_reward = 0.0    # into the current state (the observation's last entry)
         self.actuator_names = tuple(model.id2name(i, 'actuator') for i in range(model.nu))
         self._writer = _ModelWriter(model.ptr)   # apply_prepared's (binding it takes ~1 ms)
         self._structure = structure_of(model.ptr)
@@ -281,7 +285,7 @@ class ParamEnv:
     def observation(self) -> np.ndarray:
         """Return the policy's observation of the current state."""
         data = self._physics.data
-        return self.layout.observation(data.qpos, data.qvel)
+        return self.layout.observation(data.qpos, data.qvel, self._last_reward)
 
     # -- episode control --------------------------------------------------
     def reset(self, seed: int | None = None) -> np.ndarray:
@@ -305,6 +309,7 @@ class ParamEnv:
             self._physics.step(self._n_sub_steps)
             self._task.after_step(self._physics)
             reward = float(self._task.get_reward(self._physics))
+            self._last_reward = reward
             observation = self.observation()
             if not (np.all(np.isfinite(observation)) and math.isfinite(reward)):
                 raise control.PhysicsError('non-finite state or reward')
@@ -364,6 +369,7 @@ class ParamEnv:
             raise ValueError(f'cannot copy a {other.family} state into {self.family}')
         _copy_state(other.physics.data, self._physics)
         self.step_count = other.step_count
+        self._last_reward = other._last_reward
 
     def _require_valid(self, value: float) -> None:
         reason = self.spec.check_value(value)
@@ -372,6 +378,7 @@ class ParamEnv:
 
     def _reset_physics(self) -> None:
         self.step_count = 0
+        self._last_reward = 0.0
         with self._physics.reset_context():
             self._task.initialize_episode(self._physics)
 

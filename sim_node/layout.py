@@ -24,30 +24,50 @@ class ObservationLayout:
 
     Per joint, in model order: its position, or (cos, sin) for a hinge without
     limits (a free rotation, which would otherwise wrap), or nothing for the
-    dropped horizontal position; then every joint velocity.
+    dropped horizontal position; then every joint velocity. With
+    `reward_in_observation` (the appendix's choice for families whose tasks
+    differ only in the reward), the reward of the transition INTO the state
+    comes last (0 for an episode's first state): on ROS it is the StepInfo
+    reward of the state's stamp.
     """
 
     joint_names: tuple[str, ...]
     position_encoding: tuple[str, ...]  # 'raw', 'angle' (cos, sin) or 'drop'
+    reward_in_observation: bool = False
 
     @property
     def size(self) -> int:
         """Length of the observation vector."""
         width = {'raw': 1, 'angle': 2, 'drop': 0}
-        return sum(width[e] for e in self.position_encoding) + len(self.joint_names)
+        joints = sum(width[e] for e in self.position_encoding) + len(self.joint_names)
+        return joints + int(self.reward_in_observation)
 
-    def observation(self, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray:
-        """Observation from joint positions and velocities in `joint_names` order."""
+    def observation(self, positions: np.ndarray, velocities: np.ndarray,
+                    reward: float = 0.0) -> np.ndarray:
+        """Observation from joint positions and velocities in `joint_names` order.
+
+        `reward` (into this state) is read only with `reward_in_observation`.
+        """
         parts = []
         for encoding, q in zip(self.position_encoding, positions, strict=True):
             if encoding == 'raw':
                 parts.append(q)
             elif encoding == 'angle':
                 parts.extend((math.cos(q), math.sin(q)))
+        tail = [float(reward)] if self.reward_in_observation else []
         return np.concatenate([np.asarray(parts, dtype=np.float64),
-                               np.asarray(velocities, dtype=np.float64)])
+                               np.asarray(velocities, dtype=np.float64),
+                               np.asarray(tail, dtype=np.float64)])
 
-    def observation_from_joint_state(self, names, positions, velocities) -> np.ndarray:
+    def with_reward(self, observation: np.ndarray, reward: float) -> np.ndarray:
+        """Return a copy of `observation` whose reward entry is `reward` (a copy either way)."""
+        out = np.array(observation, dtype=np.float64)
+        if self.reward_in_observation:
+            out[-1] = float(reward)
+        return out
+
+    def observation_from_joint_state(self, names, positions, velocities,
+                                     reward: float = 0.0) -> np.ndarray:
         """Observation from a JointState's fields; the names may be in any order."""
         index = {name: i for i, name in enumerate(names)}
         missing = [n for n in self.joint_names if n not in index]
@@ -55,7 +75,7 @@ class ObservationLayout:
             raise ValueError(f'joint state lacks joints {missing}')
         order = [index[n] for n in self.joint_names]
         return self.observation(np.asarray(positions, dtype=np.float64)[order],
-                                np.asarray(velocities, dtype=np.float64)[order])
+                                np.asarray(velocities, dtype=np.float64)[order], reward)
 
 
 def check_action(action, action_dim: int) -> tuple[np.ndarray | None, str | None]:

@@ -142,15 +142,20 @@ def wait_loop_running(ros_node, steps, timeout=60.0):
                       timeout), 'the loop never closed (no non-zero action applied)'
 
 
-def episode_rewards(ros_node, driver, steps, seed: int, friction: float) -> list[float]:
-    """Rewards of one full episode from a reset, once the loop runs (`steps`: collected)."""
+def episode_rewards(ros_node, driver, steps, seed: int, friction: float | None = None,
+                    params: dict | None = None) -> list[float]:
+    """Rewards of one full episode from a reset, once the loop runs (`steps`: collected).
+
+    The reset sets `params` (default: the walker's friction).
+    """
     wait_loop_running(ros_node, steps)
     # The episode number comes from the reset's answer: its first state may be
     # pushed out of the driver's queue by the loop's hundreds of steps per second
     # before a loaded test takes it in (`steps` is deep enough for every one).
     episode = reset_episode(driver.reset_client,
                             lambda done, seconds: spin_until(ros_node, done, seconds),
-                            seed, {'friction': friction}, driver.timeout)
+                            seed, params if params is not None else {'friction': friction},
+                            driver.timeout)
 
     def finished():
         return any((s.episode == episode and s.truncated) or s.episode > episode

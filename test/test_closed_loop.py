@@ -150,6 +150,42 @@ def method_checkpoints(tmp_path_factory):
     return get
 
 
+@pytest.fixture(scope='session')
+def reward_observing_checkpoint(tmp_path_factory):
+    """Train a tiny zeus-id checkpoint of cheetah-run-v1 (its observation ends with r)."""
+    import subprocess
+    import sys
+    out = tmp_path_factory.mktemp('reward_obs') / 'run'
+    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', 'cheetah-run-v1',
+                    '--method', 'zeus-id', '--steps', '120', '--out', str(out),
+                    '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
+                    '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
+                    'batch_size_per_task=4', 'replay_capacity=2000'],
+                   check=True, cwd=REPO, capture_output=True)
+    return out / 'checkpoint'
+
+
+def test_a_policy_that_observes_the_reward_runs_through_the_nodes_bit_exactly(
+        loop, ros_node, reward_observing_checkpoint):
+    """Appendix B.2.1's reward in the observation: the nodes put StepInfo's reward in."""
+    weights = reward_observing_checkpoint
+    model = InferenceModel.load(weights)
+    assert model.reward_in_observation and model.family == 'cheetah-run-v1'
+    seed, target = 4, 2.2
+    expected = run_episode(model, model.family, target, seed)
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    _, driver = loop(weights=weights, family='cheetah-run-v1')
+    rewards = episode_rewards(ros_node, driver, steps, seed,
+                              params={'target_velocity': target})
+    np.testing.assert_array_equal(rewards, expected.rewards)
+    # The reward entry is read: with it zeroed, the same states get other actions.
+    obs, latents = expected.observations[1:50], expected.latents[1:50]
+    assert all(o[-1] == r for o, r in zip(obs, expected.rewards[:49], strict=True))
+    hidden = [model.act(np.append(o[:-1], 0.0), lat) for o, lat in zip(obs, latents,
+                                                                      strict=True)]
+    assert not np.array_equal(hidden, expected.actions[1:50])
+
+
 @pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'cadm', 'up-osi',
                                     'hyperdynamics', 'zeus-no-context-loss'])
 def test_every_methods_checkpoint_runs_through_the_nodes_bit_exactly(loop, ros_node,

@@ -16,9 +16,10 @@ NS = 1_000_000_000
 DT = 25_000_000   # the walker's control period
 
 
-def episode_messages(steps=12, seed=0):
+def episode_messages(steps=12, seed=0, family='walker-walk-v0', value=1.0,
+                     reward_in_obs=False):
     """(stamp, joint state fields, step info fields) per state, and the reference window."""
-    env = ParamEnv('walker-walk-v0', 1.0, seed=seed)
+    env = ParamEnv(family, value, seed=seed, reward_in_obs=reward_in_obs)
     obs = env.reset(seed=seed)
     reference = ContextWindow(K, env.obs_dim, env.action_dim)
     messages = [(1, (env.joint_names, env.joint_positions(), env.joint_velocities()),
@@ -53,6 +54,25 @@ def test_assembler_rebuilds_the_training_window_whatever_the_arrival_order():
     for got, want in zip(window.arrays(), reference.arrays(), strict=True):
         np.testing.assert_array_equal(got, want)
     assert assembler.gaps == 0 and assembler.dropped == 0
+
+
+def test_assembler_puts_the_step_infos_reward_into_observations_that_read_it():
+    # cheetah-run-v1 (the reward is all that differs between its tasks): the
+    # reward into each state is the observation's last entry, from StepInfo.
+    env, messages, reference = episode_messages(family='cheetah-run-v1', value=2.0,
+                                                reward_in_obs=True)
+    assert env.obs_dim == env.layout.size and env.layout.reward_in_observation
+    window = ContextWindow(K, env.obs_dim, env.action_dim)
+    assembler = TransitionAssembler(window, env.layout)
+    records = []
+    for stamp, joint_state, info in messages:
+        assembler.add_joint_state(stamp, *joint_state)
+        records.append(assembler.add_step_info(stamp, *info))
+    for got, want in zip(window.arrays(), reference.arrays(), strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert records[0].observation[-1] == 0.0
+    assert [r.observation[-1] for r in records[1:]] == [m[2][2] for m in messages[1:]]
+    assert all(r.observation[-1] < 0 for r in records[1:])   # -|v - 2| - control cost
 
 
 def test_assembler_clears_on_episode_start_and_on_a_missed_state():

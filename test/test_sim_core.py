@@ -119,3 +119,18 @@ def test_instability_resets_the_episode_instead_of_crashing():
     assert env.step_count == 0                  # a fresh episode
     assert np.all(np.isfinite(result.observation))
     assert np.all(np.isfinite(env.step(np.zeros(6)).observation))
+
+
+def test_reward_in_the_observation_is_the_reward_into_the_state_and_changes_nothing_else():
+    plain = ParamEnv('cheetah-run-v1', 1.5, seed=4)
+    with_reward = ParamEnv('cheetah-run-v1', 1.5, seed=4, reward_in_obs=True)
+    assert with_reward.obs_dim == plain.obs_dim + 1
+    first = with_reward.reset(seed=4)
+    np.testing.assert_array_equal(first[:-1], plain.reset(seed=4))
+    assert first[-1] == 0.0
+    for action in np.random.RandomState(0).uniform(-1, 1, (30, plain.action_dim)):
+        a, b = plain.step(action), with_reward.step(action)
+        np.testing.assert_array_equal(b.observation[:-1], a.observation)
+        assert b.observation[-1] == b.reward == a.reward
+    with_reward.reset()
+    assert with_reward.observation()[-1] == 0.0

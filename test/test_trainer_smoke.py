@@ -137,3 +137,20 @@ def test_repeated_set_options_accumulate_the_last_value_of_a_field_wins():
                                     'init_steps=7', '--set', 'num_threads=1', 'init_steps=9'])
     assert train.RunArgs.from_cli(ns).overrides == {'batch_size_per_task': 16, 'init_steps': 9,
                                               'num_threads': 1}
+
+
+def test_reward_varying_families_put_the_reward_into_the_observation(tmp_path):
+    # Appendix B.2.1: only where the reward is all that differs between tasks.
+    assert train.family_config('cheetah-run-v1').reward_in_observation
+    assert not train.family_config('walker-walk-v0').reward_in_observation
+    out = tmp_path / 'run'
+    argv = ['--family', 'cheetah-run-v1', '--method', 'sac', '--steps', '70', '--out',
+            str(out), '--eval-every', '0', '--checkpoint-every', '70', '--quiet', '--set',
+            *TINY]
+    assert train.main(argv) == 0
+    model = InferenceModel.load(out / 'checkpoint')
+    assert model.reward_in_observation
+    record = evaluate.run_episode(model, model.family, 1.0, seed=0, max_steps=20)
+    assert record.observations.shape[1] == model.obs_dim
+    np.testing.assert_array_equal(record.observations[1:, -1], record.rewards[:-1])
+    assert record.observations[0, -1] == 0.0

@@ -153,8 +153,10 @@ class FrozenContext(EpisodeProbe):
 class OtherPhysicsWindow(EpisodeProbe):
     """The window holds (s, a, r', s'') simulated from the same s and a at another value."""
 
-    def __init__(self, family: str, other_value: float, max_steps: int):
-        self.shadow = ParamEnv(family, other_value, seed=0, episode_steps=max_steps)
+    def __init__(self, family: str, other_value: float, max_steps: int,
+                 reward_in_obs: bool = False):
+        self.shadow = ParamEnv(family, other_value, seed=0, episode_steps=max_steps,
+                               reward_in_obs=reward_in_obs)
         self.other = other_value
         self.counterfactual = None
 
@@ -299,8 +301,8 @@ def context_use(model, spec, cfg: ReportConfig, records: dict) -> ContextUse:
         other_latent = np.mean(_episodes(model, other, cfg)[0].latents[model.k:], axis=0)
         probes = {'zeroed': lambda: ZeroedContext(model),
                   'frozen_other': lambda lat=other_latent, o=other: FrozenContext(lat, o),
-                  'inferred_other': lambda o=other: OtherPhysicsWindow(model.family, o,
-                                                                       cfg.max_steps)}
+                  'inferred_other': lambda o=other: OtherPhysicsWindow(
+                      model.family, o, cfg.max_steps, model.reward_in_observation)}
         rows['intact'].append(np.mean([r.episode_return for r in records[v]]))
         for name, factory in probes.items():
             rows[name].append(np.mean([r.episode_return

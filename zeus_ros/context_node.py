@@ -172,7 +172,8 @@ class ContextNode(Node):
         if problem:
             self.warnings.warn('non_finite', problem)
         msg = Context(latent=latent.tolist(), window_fill=self.window.fill,
-                      param_names=[self.param_name], param_estimates=[estimate])
+                      param_names=[self.param_name], param_estimates=[estimate],
+                      reward=float(record.reward))
         set_stamp(msg.header, record.stamp_ns)
         self.context_pub.publish(msg)
         first_seen = self.received_at.get(record.stamp_ns, time.monotonic())

@@ -90,10 +90,22 @@ class _Recorder:
                              np.asarray(r['est']), float(np.sum(r['rew'])), self.instability)
 
 
-def _episode_env(family, value, seed, max_steps, env) -> ParamEnv:
+def model_env(model: InferenceModel, value: float | None = None, seed: int | None = 0,
+              **kwargs) -> ParamEnv:
+    """Make an env of the model's family whose observation is the one the model reads."""
+    return ParamEnv(model.family, value, seed=seed,
+                    reward_in_obs=model.reward_in_observation, **kwargs)
+
+
+def _episode_env(model, family, value, seed, max_steps, env) -> ParamEnv:
     if env is None:
         kwargs = {} if max_steps is None else {'episode_steps': max_steps}
-        return ParamEnv(family, value, seed=seed, **kwargs)
+        return ParamEnv(family, value, seed=seed, reward_in_obs=model.reward_in_observation,
+                        **kwargs)
+    if env.obs_dim != model.obs_dim:
+        raise ValueError(f'the env observes {env.obs_dim} values, the weights '
+                         f'{model.obs_dim} (reward in the observation: '
+                         f'{model.reward_in_observation})')
     if env.param_value != value:
         env.set_param(value)
     return env
@@ -103,7 +115,7 @@ def run_episode(model: InferenceModel, family: str, value: float, seed: int,
                 swap_schedule: dict | None = None, max_steps: int | None = None,
                 env: ParamEnv | None = None, probe: EpisodeProbe | None = None) -> EpisodeRecord:
     """Run one deterministic episode in the ROS loop's order; return per-step records."""
-    env = _episode_env(family, value, seed, max_steps, env)
+    env = _episode_env(model, family, value, seed, max_steps, env)
     probe = probe or EpisodeProbe()
     window = ContextWindow(model.k, env.obs_dim, env.action_dim)
     obs = env.reset(seed=seed)
@@ -162,7 +174,7 @@ def main(argv=None) -> int:
     except CheckpointError as error:
         print(f'cannot load weights: {error}', file=sys.stderr)
         return 2
-    env = ParamEnv(model.family, seed=0)
+    env = model_env(model)
     values = args.values if args.values else env.spec.split(args.split)
     if not values:
         print(f'{model.family} has no {args.split} values', file=sys.stderr)

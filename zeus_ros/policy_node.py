@@ -3,7 +3,9 @@
 Subscribes /joint_states and /zeus/context; when the state and the context of
 one stamp are both in, publishes the deterministic (mean) action on
 /joint_commands with that stamp and the actuator names. phi(s) is computed
-as soon as the state arrives, while the context node works on its latent. It
+as soon as the state arrives, while the context node works on its latent
+(for weights whose observation ends with the reward into the state, once the
+context brings that reward: Context.reward). It
 answers the newest complete pair (in realtime mode older states are skipped);
 a state whose context has not come within `context_timeout` gets a zero action
 and a warning.
@@ -24,6 +26,7 @@ from zeus_ros.ros import stop_guard
 
 stop_guard.install('policy_node', __name__)
 
+import math
 import sys
 import time
 
@@ -107,17 +110,22 @@ class PolicyNode(Node):
         stamp = stamp_ns(msg.header)
         now = time.monotonic()
         self.received_at[stamp] = now
-        self.pairer.add_state(stamp, self.model.features(obs), now)
+        # phi(s) now, unless the observation still lacks its reward (the context brings it).
+        state = obs if self.layout.reward_in_observation else self.model.features(obs)
+        self.pairer.add_state(stamp, state, now)
         self.act_on_ready()
 
     def context_callback(self, msg: Context) -> None:
         latent = np.asarray(msg.latent, dtype=np.float32)
-        if latent.shape != (self.model.context_dim,) or not np.all(np.isfinite(latent)):
+        reward_ok = math.isfinite(msg.reward) or not self.layout.reward_in_observation
+        if latent.shape != (self.model.context_dim,) or not np.all(np.isfinite(latent)) \
+                or not reward_ok:
             self.counters['bad_contexts'] += 1
             self.warnings.warn('context', f'ignored a context of {latent.size} values '
-                                          f'(expected {self.model.context_dim}, finite)')
+                                          f'(expected {self.model.context_dim}, finite) '
+                                          f'with reward {msg.reward}')
             return
-        self.pairer.add_context(stamp_ns(msg.header), latent)
+        self.pairer.add_context(stamp_ns(msg.header), (latent, float(msg.reward)))
         self.act_on_ready()
 
     def clock_event(self, event: str, stamp: int, previous: int | None) -> None:
@@ -132,14 +140,20 @@ class PolicyNode(Node):
         ready = self.pairer.ready()
         if ready is None:
             return
-        stamp, features, latent = ready
-        action = self.model.act_on_features(features, latent)
+        stamp, state, (latent, reward) = ready
+        action = self.model.act_on_features(self.state_features(state, reward), latent)
         if not np.all(np.isfinite(action)):
             self.counters['non_finite_actions'] += 1
             self.warnings.warn('nonfinite', 'the policy produced a non-finite action; '
                                             'sending zeros')
             action = self.zero_action
         self.publish_command(stamp, np.clip(action, -1.0, 1.0))
+
+    def state_features(self, state: np.ndarray, reward: float) -> np.ndarray:
+        """phi(s) of a paired state (computed on arrival, or now with its reward put in)."""
+        if not self.layout.reward_in_observation:
+            return state
+        return self.model.features(self.layout.with_reward(state, reward))
 
     def loop_deadline(self) -> LoopDeadline | None:
         """Return when the oldest waiting state's context times out (see ros.loop_spin)."""

@@ -57,7 +57,8 @@ def env_info(env: ParamEnv) -> dict:
     return {'param_name': env.spec.param_name, 'joint_names': env.layout.joint_names,
             'position_encoding': env.layout.position_encoding,
             'actuator_names': env.actuator_names, 'train_values': env.spec.train,
-            'control_timestep': env.control_timestep}
+            'control_timestep': env.control_timestep,
+            'reward_in_observation': env.layout.reward_in_observation}
 
 
 def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
@@ -211,8 +212,8 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         self.values = FAMILIES[args.family].train
         self.batch_size = cfg.batch_size_per_task * len(self.values)
-        self.envs = [ParamEnv(args.family, v, seed=None, episode_steps=cfg.episode_steps)
-                     for v in self.values]
+        self.envs = [ParamEnv(args.family, v, seed=None, episode_steps=cfg.episode_steps,
+                              reward_in_obs=cfg.reward_in_observation) for v in self.values]
         env0 = self.envs[0]
         self.agent = make_agent(cfg, env0)
         self.replay = ReplayBuffer(cfg.replay_capacity, env0.obs_dim, env0.action_dim,

@@ -91,6 +91,9 @@ class ZeusConfig:
     replay_capacity: int = _f(400_000, 'Replay buffer capacity in transitions (Tables 8-9).')
     init_steps: int = _f(1500, 'Timesteps of uniform random exploration (1500 / 10000).')
     episode_steps: int = _f(1000, 'Environment steps per episode.')
+    reward_in_observation: bool = _f(
+        False, 'Append the reward of the transition into each state to the observation '
+        '(appendix B.2.1, for reward-varying families: preset there).')
     num_threads: int = _f(2, 'torch intra-op threads for training.')
 
     def validate(self) -> 'ZeusConfig':
@@ -141,13 +144,14 @@ def make_config(family: str, profile: str = 'cpu', method: str = 'zeus', *,
 
     The family's facts arrive as arguments (the learning core does not read
     the simulation's tables): `family_alpha_psi` is its Table 11 value, and a
-    reward-varying family takes Table 9's exploration and Adam betas. Then
+    reward-varying family takes Table 9's exploration and Adam betas and the
+    reward in the observation (appendix B.2.1). Then
     the method's presets apply, then `overrides` (the user's), which win.
     """
     base = dict(
         family=family, profile=profile, alpha_psi=family_alpha_psi,
         init_steps=10_000 if reward_varying else 1500,
-        adam_beta1=0.5 if reward_varying else 0.9)
+        adam_beta1=0.5 if reward_varying else 0.9, reward_in_observation=reward_varying)
     if profile == 'paper':
         base.update(hidden_dim=1024, batch_size_per_task=128, dynamics_hidden=512,
                     replay_capacity=400_000, context_dim=50, feature_dim=50,

@@ -46,6 +46,8 @@ class InferenceModel:
         self.method_name = self.meta.context.method
         self.needs_true_param = method.needs_true_param
         self.obs_dim = self.meta.obs_layout.obs_dim
+        # The observation ends with the reward into the state (ParamEnv reward_in_obs).
+        self.reward_in_observation = self.meta.obs_layout.reward_in_observation
         self.action_dim = self.meta.action_layout.action_dim
         self.k = self.meta.context.k
         self.row_dim = self.meta.context.row_dim

@@ -27,6 +27,8 @@ class ObsLayoutMeta:
     obs_dim: int
     joint_names: tuple[str, ...]
     position_encoding: tuple[str, ...]
+    # The reward into the state is the observation's last entry (absent: false).
+    reward_in_observation: bool = False
 
 
 @dataclass(frozen=True)

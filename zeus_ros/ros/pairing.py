@@ -1,7 +1,8 @@
 """ROS-free bookkeeping of the context and policy nodes: matching messages by stamp.
 
 `TransitionAssembler` (context node) joins each `JointState` with the
-`StepInfo` of the same stamp, rebuilds the transition `(s, a, r, s')` from
+`StepInfo` of the same stamp (whose reward is the observation's last entry
+for weights that read it), rebuilds the transition `(s, a, r, s')` from
 consecutive states of one episode (the action and reward come from StepInfo,
 exactly as the simulator applied them), and feeds the `ContextWindow` with the
 same semantics as training: cleared at an episode start, one push per step.
@@ -54,9 +55,10 @@ class BadMessage(ValueError):
 
 
 def layout_from_metadata(metadata: dict) -> ObservationLayout:
-    """Build the checkpoint's observation layout (joint names and encodings)."""
+    """Build the checkpoint's observation layout (joint names, encodings, reward entry)."""
     obs = metadata['obs_layout']
-    layout = ObservationLayout(tuple(obs['joint_names']), tuple(obs['position_encoding']))
+    layout = ObservationLayout(tuple(obs['joint_names']), tuple(obs['position_encoding']),
+                               bool(obs.get('reward_in_observation', False)))
     if layout.size != int(obs['obs_dim']):
         raise ValueError(f'checkpoint layout gives {layout.size} observations, '
                          f'metadata says {obs["obs_dim"]}')
@@ -183,8 +185,10 @@ class TransitionAssembler:
         if stamp_ns not in self._observations or stamp_ns not in self._infos:
             self._trim()
             return None
-        record = StateRecord(stamp_ns, self._observations.pop(stamp_ns),
-                             *self._infos.pop(stamp_ns))
+        observation, info = self._observations.pop(stamp_ns), self._infos.pop(stamp_ns)
+        if self.layout.reward_in_observation:   # the reward into the state, as in training
+            observation = self.layout.with_reward(observation, info[2])
+        record = StateRecord(stamp_ns, observation, *info)
         previous_high = self.clock.high
         event = self.clock.observe(stamp_ns)
         if event == DUPLICATE:

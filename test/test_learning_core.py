@@ -509,3 +509,38 @@ def test_the_method_update_runs_exactly_when_the_method_has_one(method, monkeypa
     agent.update(b)
     assert len(calls) == (1 if agent.method.has_own_update else 0)
     assert agent.method.has_own_update == (method not in ('sac', 'oracle'))
+
+
+def test_relational_psi_is_order_and_padding_invariant_and_reads_the_other_rows():
+    agent = make_agent('zeus-id', context_encoder='relational')
+    psi = agent.method.psi
+    with torch.no_grad():   # give the standardiser some statistics
+        psi.norm.observe(torch.randn(64, ROW))
+    rows = torch.randn(3, K, ROW)
+    mask = torch.tensor([[True, True, True, False], [True] * K, [True, False, False, False]])
+    with torch.no_grad():
+        out = psi(rows, mask)
+        perm = torch.tensor([2, 0, 3, 1])
+        assert torch.allclose(psi(rows[:, perm], mask[:, perm]), out, atol=1e-6)
+        garbage = rows.clone()
+        garbage[~mask] = 1e3
+        assert torch.allclose(psi(garbage, mask), out, atol=1e-6)
+    # A mean of independent per-row codes is additive over rows: for two-row
+    # windows {a, b} + {c, d} == {a, d} + {c, b}. Relational codes are not: a
+    # row's code depends on the row beside it.
+    a, b, c, d = torch.randn(4, ROW)
+    full = torch.ones(1, 2, dtype=torch.bool)
+
+    def pair(r1, r2, module):
+        with torch.no_grad():
+            return module(torch.stack([r1, r2])[None], full)[0]
+
+    plain = make_agent('zeus-id').method.psi
+    plain.norm.load_state_dict(psi.norm.state_dict())
+    for module, additive in ((plain, True), (psi, False)):
+        left = pair(a, b, module) + pair(c, d, module)
+        right = pair(a, d, module) + pair(c, b, module)
+        assert torch.allclose(left, right, atol=1e-5) == additive
+    assert agent.config.context_encoder == 'relational'
+    with pytest.raises(ValueError, match='context_encoder'):
+        tiny_config('zeus-id', context_encoder='attention')

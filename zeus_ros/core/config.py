@@ -44,6 +44,10 @@ class ZeusConfig:
     context_input: str = _f(
         'transition', "What psi reads per row (zeus-id): 'transition' = concat(s, a, r, s'), "
         "'delta' = concat(s, a, r, s' - s); both standardised by running statistics.")
+    context_encoder: str = _f(
+        'deepset', "psi of the learned-encoder methods (zeus-id, cadm, up-osi, hyperdynamics): "
+        "'deepset' = pooled per-row codes; 'relational' = each row also reads its deviation "
+        'from the window mean (sees how transitions co-vary: the sign of v - target).')
     context_critic_grad: bool = _f(
         True, 'zeus-id: let the critic TD loss train psi (zeus always does).')
     metric_normalise: bool = _f(
@@ -102,6 +106,8 @@ class ZeusConfig:
             raise ValueError(f'method must be one of {sorted(METHODS)}, got {self.method!r}')
         if self.context_input not in ('transition', 'delta'):
             raise ValueError("context_input must be 'transition' or 'delta'")
+        if self.context_encoder not in ('deepset', 'relational'):
+            raise ValueError("context_encoder must be 'deepset' or 'relational'")
         if self.profile not in PROFILES:
             raise ValueError(f'profile must be one of {PROFILES}, got {self.profile!r}')
         if self.aggregation not in AGGREGATIONS:

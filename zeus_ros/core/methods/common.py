@@ -69,26 +69,37 @@ def transition_features(rows: torch.Tensor, obs_dim: int, delta: bool) -> torch.
 
 
 class StandardisedContextEncoder(nn.Module):
-    """psi: standardised transition features -> per-row codes -> pooled over valid rows."""
+    """psi: standardised transition features -> per-row codes -> pooled over valid rows.
+
+    With ``context_encoder='relational'`` each row is encoded together with its
+    deviation from the window's mean row (over the valid rows): a code can then
+    depend on how a transition differs from the others, so the pooled latent
+    can carry how features co-vary within the window (e.g. whether the reward
+    rises or falls with the speed), which a mean of independent per-row codes
+    cannot. Still invariant to the order of the rows and to the padding.
+    """
 
     def __init__(self, obs_dim: int, row_dim: int, cfg, out_dim: int | None = None):
         super().__init__()
         self.obs_dim = obs_dim
         self.delta = cfg.context_input == 'delta'
+        self.relational = cfg.context_encoder == 'relational'
         self.norm = RunningStandardiser(row_dim)
-        self.encoder = ContextEncoder(row_dim, out_dim or cfg.context_dim, cfg.context_hidden,
+        self.encoder = ContextEncoder(row_dim * (2 if self.relational else 1),
+                                      out_dim or cfg.context_dim, cfg.context_hidden,
                                       cfg.context_layers, cfg.aggregation)
 
     def features(self, rows: torch.Tensor) -> torch.Tensor:
         """Return what psi reads of each row, before standardising."""
         return transition_features(rows, self.obs_dim, self.delta)
 
-    def codes(self, rows: torch.Tensor) -> torch.Tensor:
-        """Per-row codes of raw window rows."""
-        return self.encoder.codes(self.norm(self.features(rows)))
-
     def forward(self, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        return self.encoder.pool(self.codes(rows), mask)
+        x = self.norm(self.features(rows))
+        if self.relational:
+            valid = mask.unsqueeze(-1).to(x.dtype)
+            mean = (x * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp(min=1.0)
+            x = torch.cat([x, x - mean], dim=-1)
+        return self.encoder.pool(self.encoder.codes(x), mask)
 
 
 class EncoderMethod(ContextMethod):

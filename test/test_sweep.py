@@ -96,3 +96,14 @@ def test_the_report_table_takes_only_finished_runs_and_reuses_their_reports(tmp_
     cached.write_text('{"returns": [], "identification": null}')
     os.utime(meta, (1, 1))                                   # the report is newer
     assert run_report(run, episodes=1, steps=1000) == {'returns': [], 'identification': None}
+
+
+def test_the_final_evaluation_table_leaves_unfinished_runs_out_and_says_so():
+    from zeus_ros.sweep_results import Curve, markdown, table_rows
+    done = Curve((800, 1600), (100, 200), {'train': (10.0, 30.0)})
+    other = Curve((800, 1600), (100, 200), {'train': (12.0, 50.0)})
+    half = Curve((800,), (100,), {'train': (900.0,)})
+    rows = table_rows({('f', 'sac'): {1: done, 2: half, 3: other}}, steps=200)
+    assert rows == [{'family': 'f', 'method': 'sac', 'split': 'train', 'mean': 40.0,
+                     'sem': 10.0, 'seeds': 2, 'timestep': 200, 'unfinished': 1}]
+    assert '(1 unfinished left out)' in markdown(rows, {})

@@ -74,20 +74,24 @@ def gather(cfg: SweepConfig) -> dict:
     return out
 
 
-def table_rows(curves: dict) -> list[dict]:
-    """Final-evaluation rows: family, method, split, mean, sem, seeds, timestep."""
+def table_rows(curves: dict, steps: int) -> list[dict]:
+    """Final-evaluation rows of the runs that reached `steps` timesteps.
+
+    Each row: family, method, split, mean, sem, seeds, timestep, and how many
+    runs are still short of the budget (left out: a half-trained run's last
+    evaluation is not a result).
+    """
     rows = []
     for (family, method), runs in curves.items():
-        if not runs:
-            continue
+        done = {s: c for s, c in runs.items() if c.timesteps[-1] >= steps}
         for split in SPLIT_ORDER:
-            finals = [c.returns[split][-1] for c in runs.values() if split in c.returns]
+            finals = [c.returns[split][-1] for c in done.values() if split in c.returns]
             if finals:
                 mean, sem = mean_sem(finals)
                 rows.append({'family': family, 'method': method, 'split': split,
                              'mean': round(mean, 1), 'sem': round(sem, 1),
-                             'seeds': len(finals),
-                             'timestep': min(c.timesteps[-1] for c in runs.values())})
+                             'seeds': len(finals), 'timestep': steps,
+                             'unfinished': len(runs) - len(done)})
     return rows
 
 
@@ -165,7 +169,8 @@ def markdown(rows: list[dict], figures: dict) -> str:
             first = next(iter(cells.values()))
             lines.append(f'| {method} | ' + ' | '.join(
                 f'{cells[s]["mean"]:.0f} +- {cells[s]["sem"]:.0f}' if s in cells else '-'
-                for s in SPLIT_ORDER) + f' | {first["seeds"]} | {first["timestep"]} |')
+                for s in SPLIT_ORDER) + f' | {first["seeds"]} | {first["timestep"]} |'
+                + (f' ({first["unfinished"]} unfinished left out)' if first['unfinished'] else ''))
         lines += ['', *_report_table(family, methods, figures)]
     return '\n'.join(lines)
 
@@ -240,11 +245,11 @@ def _plot_method(ax, runs: dict, split: str, method: str) -> None:
 def write_results(cfg: SweepConfig, with_report: bool = False) -> str:
     """Write comparison.csv / .md and the curves; return the Markdown."""
     curves = gather(cfg)
-    rows = table_rows(curves)
+    rows = table_rows(curves, cfg.steps)
     cfg.root.mkdir(parents=True, exist_ok=True)
     with open(cfg.root / 'comparison.csv', 'w', newline='') as f:
         writer = csv.DictWriter(f, ('family', 'method', 'split', 'mean', 'sem', 'seeds',
-                                    'timestep'))
+                                    'timestep', 'unfinished'))
         writer.writeheader()
         writer.writerows(rows)
     figures = adaptation_figures(cfg) if with_report else {}

@@ -544,3 +544,22 @@ def test_relational_psi_is_order_and_padding_invariant_and_reads_the_other_rows(
     assert agent.config.context_encoder == 'relational'
     with pytest.raises(ValueError, match='context_encoder'):
         tiny_config('zeus-id', context_encoder='attention')
+
+
+@pytest.mark.parametrize('method,extra', [('zeus', {}), ('zeus-id', {}), ('cadm', {}),
+                                          ('hyperdynamics', {}), ('up-osi', {}),
+                                          ('zeus-id', {'context_encoder': 'relational'}),
+                                          ('oracle', {}), ('sac', {})])
+def test_encode_pair_is_the_two_windows_latents_from_one_pass(method, extra):
+    agent, b = make_agent(method, **extra), make_batch()
+    m = agent.method
+    norm = getattr(getattr(m, 'psi', None), 'norm', None)
+    if norm is not None:   # standardising statistics away from the identity
+        norm.observe(b.ctx_rows[b.ctx_mask] * 3.0 + 1.0)
+    with torch.no_grad():
+        want_c = m.encode(b.ctx_rows, b.ctx_mask, b.param)
+        want_cn = m.encode(b.next_ctx_rows, b.next_ctx_mask, b.param)
+    c, cn = m.encode_pair(b, grad=True)
+    assert torch.allclose(c, want_c, atol=1e-5) and torch.allclose(cn, want_cn, atol=1e-5)
+    assert not cn.requires_grad
+    assert c.requires_grad == (method in ('zeus', 'zeus-id', 'cadm', 'hyperdynamics'))

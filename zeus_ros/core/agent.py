@@ -121,10 +121,6 @@ class Agent:
                 'alpha_opt': self.alpha_opt, **self.method.optimizers()}
 
     # -- acting ----------------------------------------------------------------
-    def _context(self, rows, mask, param, grad: bool) -> torch.Tensor:
-        with torch.set_grad_enabled(grad):
-            return self.method.encode(rows, mask, param)
-
     @torch.no_grad()
     def act(self, obs, window_rows, window_mask, param=None,
             deterministic: bool = False) -> np.ndarray:
@@ -151,9 +147,9 @@ class Agent:
     # -- losses ----------------------------------------------------------------
     def critic_loss(self, b: Batch):
         """TD loss of both Q heads; returns (loss, z, c, metrics), z/c carrying the graph."""
+        c, cn = self.method.encode_pair(b, grad=self.method.critic_trains_context)
         with torch.no_grad():
             zn = self.phi(b.next_obs)
-            cn = self.method.encode(b.next_ctx_rows, b.next_ctx_mask, b.param)
             next_action, next_logp, _ = self.actor.sample(torch.cat([zn, cn], -1))
             ct = self.method.encode_target(b.next_ctx_rows, b.next_ctx_mask, b.param) \
                 if self.method.critic_trains_context else cn
@@ -162,7 +158,6 @@ class Agent:
             target_v = torch.min(tq1, tq2) - self.alpha.detach() * next_logp
             target_q = b.reward + b.not_done * self.config.discount * target_v
         z = self.phi(b.obs)
-        c = self._context(b.ctx_rows, b.ctx_mask, b.param, self.method.critic_trains_context)
         q1, q2 = self.critic(torch.cat([z, c], -1), b.action)
         loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         return loss, z, c, {'critic_loss': loss.detach(), 'q1': q1.detach().mean()}

@@ -80,6 +80,21 @@ class ContextEncoder(nn.Module):
         """Per-transition codes [..., context_dim] before aggregation."""
         return run_mlp(self.net, rows)
 
+    def window_pair(self, codes: torch.Tensor, chain_mask: torch.Tensor,
+                    grad: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pool a chain's codes [B, k+1, C] (newest first) into the two windows it holds.
+
+        The window before the oldest transition's successor (rows 1..k, keeping
+        the graph when `grad`) and the one ending with the newest (rows 0..k-1,
+        detached): the same latents `forward` gives of the two windows, up to
+        the order of the floating-point sum.
+        """
+        with torch.set_grad_enabled(grad):
+            current = self.pool(codes[:, 1:], chain_mask[:, 1:])
+        with torch.no_grad():
+            following = self.pool(codes[:, :-1].detach(), chain_mask[:, :-1])
+        return current, following
+
     def pool(self, codes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Aggregate codes [B, k, C] over the valid rows of `mask` [B, k]."""
         m = mask.to(codes.dtype).unsqueeze(-1)  # [B, k, 1]

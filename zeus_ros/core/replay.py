@@ -7,7 +7,10 @@ follows the links back k steps and lays the rows out exactly as
 `ContextWindow.arrays()` does (oldest first, zero-padded at the end):
 
 * ``ctx``: H_t, the window before s_t (the context for acting at s_t);
-* ``next_ctx``: H_{t+1}, the window for s_{t+1} (it ends with transition t).
+* ``next_ctx``: H_{t+1}, the window for s_{t+1} (it ends with transition t);
+* ``chain``: transition t and its k predecessors, newest first: H_t is its
+  last k rows and H_{t+1} its first k, so per-row codes of both windows can
+  be computed once (`ContextMethod.encode_pair`).
 
 Storing links instead of two k-row windows per transition makes memory and
 checkpoints independent of k (k = 25 would otherwise cost ~11 KB a
@@ -42,6 +45,8 @@ class Batch:
     next_ctx_mask: torch.Tensor
     task: torch.Tensor
     param: torch.Tensor
+    chain_rows: torch.Tensor    # [B, k + 1, D]: transition t, t-1, ... t-k (zeros where none)
+    chain_mask: torch.Tensor    # [B, k + 1]: which of them exist
 
 
 def oldest_first(rows_newest_first: np.ndarray, valid: np.ndarray):
@@ -120,23 +125,27 @@ class ReplayBuffer:
 
     def windows(self, idx: np.ndarray):
         """((ctx_rows, ctx_mask), (next_ctx_rows, next_ctx_mask)) of slots `idx`."""
+        return self._windows_and_chain(idx)[:2]
+
+    def _windows_and_chain(self, idx: np.ndarray):
         chain = self._chain(idx)
         rows = self._rows(chain)
         valid = chain >= 0
         ctx = oldest_first(rows[:, 1:], valid[:, 1:])
         nxt = oldest_first(rows[:, :-1], valid[:, :-1])
-        return ctx, nxt
+        return ctx, nxt, (rows, valid)
 
     def sample(self, batch_size: int) -> Batch:
         """Uniform minibatch (with replacement) as torch tensors."""
         if self.size == 0:
             raise ValueError('cannot sample from an empty replay buffer')
         idx = self.rng.integers(0, self.size, size=batch_size)
-        (ctx_rows, ctx_mask), (next_rows, next_mask) = self.windows(idx)
+        (ctx_rows, ctx_mask), (next_rows, next_mask), (chain_rows, chain_mask) = \
+            self._windows_and_chain(idx)
         arrays = {n: getattr(self, n)[idx] for n in
                   ('obs', 'action', 'reward', 'next_obs', 'not_done', 'task', 'param')}
         arrays.update(ctx_rows=ctx_rows, ctx_mask=ctx_mask, next_ctx_rows=next_rows,
-                      next_ctx_mask=next_mask)
+                      next_ctx_mask=next_mask, chain_rows=chain_rows, chain_mask=chain_mask)
         return Batch(**{n: torch.from_numpy(np.ascontiguousarray(v)) for n, v in arrays.items()})
 
     # -- persistence (arrays only; used by zeus_ros.deploy.checkpoint) ------------

@@ -114,6 +114,19 @@ class ContextMethod:
         """Latent context [B, context_dim] of windows rows [B, k, D], mask [B, k]."""
         return rows.new_zeros((rows.shape[0], 0))
 
+    def encode_pair(self, batch, grad: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """Latents of the batch's windows before s_t and before s_{t+1} (the critic's).
+
+        The first keeps its graph when `grad` (the critic trains the encoder),
+        the second never does. Methods whose latent is a pooled per-row code
+        compute both from one pass over the chain (`batch.chain_rows`).
+        """
+        with torch.no_grad():
+            following = self.encode(batch.next_ctx_rows, batch.next_ctx_mask, batch.param)
+        with torch.set_grad_enabled(grad):
+            current = self.encode(batch.ctx_rows, batch.ctx_mask, batch.param)
+        return current, following
+
     def acting_context(self, rows, mask, param) -> torch.Tensor:
         """Latent the trainer acts on while collecting (UP-OSI switches to its estimate)."""
         return self.encode(rows, mask, param)

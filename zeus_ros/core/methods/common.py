@@ -93,6 +93,17 @@ class StandardisedContextEncoder(nn.Module):
         """Return what psi reads of each row, before standardising."""
         return transition_features(rows, self.obs_dim, self.delta)
 
+    def window_pair(self, chain_rows, chain_mask, grad: bool):
+        """Both windows' latents from one pass over a chain (see ContextEncoder.window_pair).
+
+        None for the relational encoder: a row's code depends on its window.
+        """
+        if self.relational:
+            return None
+        with torch.set_grad_enabled(grad):
+            codes = self.encoder.codes(self.norm(self.features(chain_rows)))
+        return self.encoder.window_pair(codes, chain_mask, grad)
+
     def forward(self, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         x = self.norm(self.features(rows))
         if self.relational:
@@ -165,6 +176,10 @@ class EncoderMethod(ContextMethod):
 
     def encode(self, rows, mask, param):
         return self.psi(rows, mask)
+
+    def encode_pair(self, batch, grad):
+        pair = self.psi.window_pair(batch.chain_rows, batch.chain_mask, grad)
+        return pair if pair is not None else super().encode_pair(batch, grad)
 
     def decode(self, latent):
         return self.decoder(latent)

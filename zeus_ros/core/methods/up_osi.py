@@ -18,6 +18,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from zeus_ros.core.methods.base import ContextMethod
 from zeus_ros.core.methods.common import EncoderMethod
 
 
@@ -44,6 +45,9 @@ class UpOsiMethod(EncoderMethod):
         if param is None:
             raise ValueError('UP is trained on the true parameter: pass it')
         return self.param.normalise(torch.as_tensor(param, dtype=torch.float32).reshape(-1, 1))
+
+    # In training the latent is the true parameter, not psi's: no codes to share.
+    encode_pair = ContextMethod.encode_pair
 
     def acting_context(self, rows, mask, param):
         if param is not None and self.updates < self.cfg.osi_warmup_updates:

@@ -73,6 +73,11 @@ class ZeusMethod(ContextMethod):
     def encode(self, rows, mask, param):
         return self.psi(rows, mask)
 
+    def encode_pair(self, batch, grad):
+        with torch.set_grad_enabled(grad):   # one pass over the k + 1 rows of both windows
+            codes = self.psi.codes(batch.chain_rows)
+        return self.psi.window_pair(codes, batch.chain_mask, grad)
+
     def encode_target(self, rows, mask, param):
         with torch.no_grad():
             return self.psi_target(rows, mask)

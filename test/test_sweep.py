@@ -106,4 +106,4 @@ def test_the_final_evaluation_table_leaves_unfinished_runs_out_and_says_so():
     rows = table_rows({('f', 'sac'): {1: done, 2: half, 3: other}}, steps=200)
     assert rows == [{'family': 'f', 'method': 'sac', 'split': 'train', 'mean': 40.0,
                      'sem': 10.0, 'seeds': 2, 'timestep': 200, 'unfinished': 1}]
-    assert '(1 unfinished left out)' in markdown(rows, {})
+    assert '| 2 (+1 unfinished, left out) | 200 |' in markdown(rows, {})

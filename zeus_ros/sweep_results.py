@@ -169,10 +169,14 @@ def markdown(rows: list[dict], figures: dict) -> str:
             first = next(iter(cells.values()))
             lines.append(f'| {method} | ' + ' | '.join(
                 f'{cells[s]["mean"]:.0f} +- {cells[s]["sem"]:.0f}' if s in cells else '-'
-                for s in SPLIT_ORDER) + f' | {first["seeds"]} | {first["timestep"]} |'
-                + (f' ({first["unfinished"]} unfinished left out)' if first['unfinished'] else ''))
+                for s in SPLIT_ORDER) + f' | {_seeds_cell(first)} | {first["timestep"]} |')
         lines += ['', *_report_table(family, methods, figures)]
     return '\n'.join(lines)
+
+
+def _seeds_cell(row: dict) -> str:
+    extra = f' (+{row["unfinished"]} unfinished, left out)' if row.get('unfinished') else ''
+    return f'{row["seeds"]}{extra}'
 
 
 def _report_table(family: str, methods: list[str], figures: dict) -> list[str]:

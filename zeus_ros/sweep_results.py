@@ -74,23 +74,30 @@ def gather(cfg: SweepConfig) -> dict:
     return out
 
 
-def table_rows(curves: dict, steps: int) -> list[dict]:
-    """Final-evaluation rows of the runs that reached `steps` timesteps.
+def finished(run: Path, steps: int) -> bool:
+    """Return whether a run's checkpoint has reached `steps` timesteps."""
+    meta = run / 'checkpoint' / 'metadata.json'
+    return meta.exists() and json.loads(meta.read_text())['steps']['timestep'] >= steps
 
-    Each row: family, method, split, mean, sem, seeds, timestep, and how many
-    runs are still short of the budget (left out: a half-trained run's last
-    evaluation is not a result).
+
+def table_rows(curves: dict, is_finished) -> list[dict]:
+    """Last-evaluation rows of the finished runs (`is_finished(family, method, seed)`).
+
+    Each row: family, method, split, mean, sem, seeds, timestep (of the last
+    evaluation), and how many runs are still short of the budget (left out: a
+    half-trained run's last evaluation is not a result).
     """
     rows = []
     for (family, method), runs in curves.items():
-        done = {s: c for s, c in runs.items() if c.timesteps[-1] >= steps}
+        done = {s: c for s, c in runs.items() if is_finished(family, method, s)}
         for split in SPLIT_ORDER:
             finals = [c.returns[split][-1] for c in done.values() if split in c.returns]
             if finals:
                 mean, sem = mean_sem(finals)
                 rows.append({'family': family, 'method': method, 'split': split,
                              'mean': round(mean, 1), 'sem': round(sem, 1),
-                             'seeds': len(finals), 'timestep': steps,
+                             'seeds': len(finals),
+                             'timestep': min(c.timesteps[-1] for c in done.values()),
                              'unfinished': len(runs) - len(done)})
     return rows
 
@@ -116,7 +123,7 @@ def run_report(run: Path, episodes: int, steps: int) -> dict | None:
     """
     from zeus_ros.adaptation import build_report, ReportConfig
     meta, cached = run / 'checkpoint' / 'metadata.json', run / 'adaptation.json'
-    if not meta.exists() or json.loads(meta.read_text())['steps']['timestep'] < steps:
+    if not finished(run, steps):
         return None
     if cached.exists() and cached.stat().st_mtime > meta.stat().st_mtime:
         return json.loads(cached.read_text())
@@ -249,7 +256,8 @@ def _plot_method(ax, runs: dict, split: str, method: str) -> None:
 def write_results(cfg: SweepConfig, with_report: bool = False) -> str:
     """Write comparison.csv / .md and the curves; return the Markdown."""
     curves = gather(cfg)
-    rows = table_rows(curves, cfg.steps)
+    rows = table_rows(curves, lambda family, method, seed: finished(
+        run_dir(cfg, family, method, seed), cfg.steps))
     cfg.root.mkdir(parents=True, exist_ok=True)
     with open(cfg.root / 'comparison.csv', 'w', newline='') as f:
         writer = csv.DictWriter(f, ('family', 'method', 'split', 'mean', 'sem', 'seeds',

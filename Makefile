@@ -50,7 +50,8 @@ bench: setup
 	  --realtime-weights weights/cheetah-run-v0-zeus --realtime-seconds $(REALTIME_SECONDS) \
 	  --compare-normal-scheduler --json bench/results_loop.json
 	$(IN_WS) python bench/bench_trainer.py --profile cpu --threads 2 1
-	$(IN_WS) python bench/bench_trainer_ab.py --baseline $(TRAINER_BASELINE) --rounds 3 --threads 1
+	$(IN_WS) python bench/bench_trainer_ab.py --baseline $(TRAINER_BASELINE) --rounds 3 --threads 1 \
+	  --pair --json bench/results_trainer_ab.json
 
 # Soak (issue 17): lockstep loop, a live swap every 10 s, a kill -9 and restart
 # of each node; figures per minute and the goals' pass/fail (bench/soak.py).

@@ -115,22 +115,27 @@ def test_window_rejects_wrong_sizes():
 
 
 # -- psi -------------------------------------------------------------------------
+def assert_order_and_padding_invariant(psi):
+    """Check that shuffled rows or garbage in the padding leave psi's latent unchanged."""
+    rows = torch.randn(3, K, ROW)
+    mask = torch.tensor([[True, True, True, False], [True] * K, [True, False, False, False]])
+    with torch.no_grad():
+        out = psi(rows, mask)
+        perm = torch.tensor([2, 0, 3, 1])
+        assert torch.allclose(psi(rows[:, perm], mask[:, perm]), out, atol=1e-6)
+        garbage = rows.clone()
+        garbage[~mask] = 1e3
+        assert torch.allclose(psi(garbage, mask), out, atol=1e-6)
+        # and it is not trivially constant: changing a valid row changes the output
+        changed = rows.clone()
+        changed[:, 0] += 1.0
+        assert not torch.allclose(psi(changed, mask), out)
+
+
 @pytest.mark.parametrize('agg', ['mean', 'sum', 'max'])
 def test_psi_is_permutation_invariant_and_ignores_padding(agg):
     torch.manual_seed(1)
-    psi = ContextEncoder(ROW, 6, 16, 2, agg)
-    rows = torch.randn(3, K, ROW)
-    mask = torch.tensor([[True, True, True, False], [True] * K, [True, False, False, False]])
-    out = psi(rows, mask)
-    perm = torch.tensor([2, 0, 3, 1])
-    assert torch.allclose(psi(rows[:, perm], mask[:, perm]), out, atol=1e-6)
-    garbage = rows.clone()
-    garbage[~mask] = 1e3
-    assert torch.allclose(psi(garbage, mask), out, atol=1e-6)
-    # and it is not trivially constant: changing a valid row changes the output
-    changed = rows.clone()
-    changed[:, 0] += 1.0
-    assert not torch.allclose(psi(changed, mask), out)
+    assert_order_and_padding_invariant(ContextEncoder(ROW, 6, 16, 2, agg))
 
 
 def test_w2_closed_form():
@@ -516,15 +521,7 @@ def test_relational_psi_is_order_and_padding_invariant_and_reads_the_other_rows(
     psi = agent.method.psi
     with torch.no_grad():   # give the standardiser some statistics
         psi.norm.observe(torch.randn(64, ROW))
-    rows = torch.randn(3, K, ROW)
-    mask = torch.tensor([[True, True, True, False], [True] * K, [True, False, False, False]])
-    with torch.no_grad():
-        out = psi(rows, mask)
-        perm = torch.tensor([2, 0, 3, 1])
-        assert torch.allclose(psi(rows[:, perm], mask[:, perm]), out, atol=1e-6)
-        garbage = rows.clone()
-        garbage[~mask] = 1e3
-        assert torch.allclose(psi(garbage, mask), out, atol=1e-6)
+    assert_order_and_padding_invariant(psi)
     # A mean of independent per-row codes is additive over rows: for two-row
     # windows {a, b} + {c, d} == {a, d} + {c, b}. Relational codes are not: a
     # row's code depends on the row beside it.

@@ -47,7 +47,7 @@ class ZeusConfig:
     context_encoder: str = _f(
         'deepset', "psi of the learned-encoder methods (zeus-id, cadm, up-osi, hyperdynamics): "
         "'deepset' = pooled per-row codes; 'relational' = each row also reads its deviation "
-        'from the window mean (sees how transitions co-vary: the sign of v - target).')
+        'from the window mean (codes can depend on how transitions co-vary).')
     context_critic_grad: bool = _f(
         True, 'zeus-id: let the critic TD loss train psi (zeus always does).')
     metric_normalise: bool = _f(

@@ -27,8 +27,7 @@ follows vbar + |vbar - T'| (or vbar - |vbar - T'|) rather than T'.
 
 About 4 CPU-minutes for three checkpoints. Writes
 repro/results/target_velocity_identifiability.md and .csv (per seed, policy
-and target); the per-step records are kept in --cache (not committed), which
---from-cache re-renders without running episodes.
+and target).
 """
 
 from __future__ import annotations
@@ -36,7 +35,6 @@ from __future__ import annotations
 import argparse
 import csv
 from pathlib import Path
-import pickle
 import time
 
 import numpy as np
@@ -447,19 +445,13 @@ def main(argv=None) -> int:
                                                  for s in (1, 2, 3)])
     p.add_argument('--episodes', type=int, default=2)
     p.add_argument('--max-steps', type=int, default=1000)
-    p.add_argument('--cache', type=Path, default=Path(f'/tmp/{NAME}.pkl'))
-    p.add_argument('--from-cache', action='store_true', help='re-render the cached records')
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    if args.from_cache:
-        all_data = pickle.loads(args.cache.read_bytes())
-    else:
-        all_data = {}
-        for run in args.runs:
-            start = time.time()
-            all_data[run] = measure(run, args.episodes, args.max_steps)
-            print(f'{run}: {time.time() - start:.0f} s', flush=True)
-        args.cache.write_bytes(pickle.dumps(all_data))
+    all_data = {}
+    for run in args.runs:
+        start = time.time()
+        all_data[run] = measure(run, args.episodes, args.max_steps)
+        print(f'{run}: {time.time() - start:.0f} s', flush=True)
     lines, csv_rows = render(all_data, args.runs)
     lines += ['## Conclusion', '', CONCLUSION.strip(), '']
     RESULTS.mkdir(exist_ok=True)

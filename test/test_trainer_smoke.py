@@ -154,3 +154,30 @@ def test_reward_varying_families_put_the_reward_into_the_observation(tmp_path):
     assert record.observations.shape[1] == model.obs_dim
     np.testing.assert_array_equal(record.observations[1:, -1], record.rewards[:-1])
     assert record.observations[0, -1] == 0.0
+
+
+def test_train_swaps_move_tasks_between_training_values_and_the_replay_follows(tmp_path):
+    args = train.RunArgs(out=tmp_path / 'run', family=FAMILY, method='oracle', steps=0,
+                         overrides=train.parse_overrides([*TINY, 'train_swap_prob=0.5']))
+    trainer = train.Trainer(args)
+    seen = set()
+    for _ in range(20):
+        trainer.collect()
+        trainer.timestep += 1
+        seen |= {env.param_value for env in trainer.envs}
+        assert {env.param_value for env in trainer.envs} <= set(trainer.values)
+    n = len(trainer.replay)
+    params = trainer.replay.param[:n].reshape(20, len(trainer.envs))
+    assert len(seen) > 1 and len(set(params[-1])) > 1
+    # Every transition carries the value in force when it was taken, which
+    # after a swap is not its task's first one.
+    assert (params[-1] == np.float32([env.param_value for env in trainer.envs])).all()
+    assert (params != np.asarray(trainer.values, np.float32)).any()
+    # Without swaps nothing moves, and no random draw is spent on them.
+    still = train.Trainer(train.RunArgs(out=tmp_path / 'still', family=FAMILY,
+                                        method='oracle', steps=0,
+                                        overrides=train.parse_overrides(TINY)))
+    for _ in range(5):
+        still.collect()
+        still.timestep += 1
+    assert [env.param_value for env in still.envs] == list(still.values)

@@ -263,14 +263,26 @@ class Trainer:
     def collect(self) -> None:
         """One timestep: every training task steps once; transitions go to the replay."""
         cfg = self.cfg
+        self._swap_tasks()
         ctx = [w.arrays() for w in self.windows]
         if self.timestep < cfg.init_steps:
             actions = self.rng.uniform(-1.0, 1.0, (len(self.envs), self.envs[0].action_dim))
         else:
             actions = self.agent.act(np.stack(self.obs), np.stack([c[0] for c in ctx]),
-                                     np.stack([c[1] for c in ctx]), self.values)
+                                     np.stack([c[1] for c in ctx]),
+                                     [env.param_value for env in self.envs])
         for i, env in enumerate(self.envs):
             self._step_task(i, env, actions[i])
+
+    def _swap_tasks(self) -> None:
+        """Move tasks to another training value mid-episode (`train_swap_prob`; window kept)."""
+        if self.cfg.train_swap_prob <= 0:
+            return   # no draw: runs without swaps keep the random stream they always had
+        jumps = self.rng.random(len(self.envs)) < self.cfg.train_swap_prob
+        for env, jump in zip(self.envs, jumps, strict=True):
+            if jump:
+                others = [v for v in self.values if v != env.param_value]
+                env.apply_prepared(env.prepare_param(float(self.rng.choice(others))))
 
     def _step_task(self, i: int, env: ParamEnv, action: np.ndarray) -> None:
         res = env.step(action)
@@ -286,7 +298,7 @@ class Trainer:
         w.push(self.obs[i], action, res.reward, res.observation)
         # Time-limit truncation is not a terminal: bootstrap through it.
         self.replay.add(self.obs[i], action, res.reward, res.observation, res.terminal, i,
-                        self.values[i], continues)
+                        env.param_value, continues)
         self.ep_returns[i] += res.reward
         self.obs[i] = res.observation
         if res.terminal or res.truncated:
@@ -400,7 +412,7 @@ class TrainingLogs:
 
     def episode(self, tr: Trainer, task: int) -> None:
         self.episodes.write({'timestep': tr.timestep, 'env_steps': tr.env_steps, 'task': task,
-                             'value': tr.values[task],
+                             'value': tr.envs[task].param_value,
                              'return': round(float(tr.ep_returns[task]), 4)})
         self.writer.add_scalar(f'train_return/task{task}', tr.ep_returns[task], tr.env_steps)
 

@@ -95,6 +95,10 @@ class ZeusConfig:
     replay_capacity: int = _f(400_000, 'Replay buffer capacity in transitions (Tables 8-9).')
     init_steps: int = _f(1500, 'Timesteps of uniform random exploration (1500 / 10000).')
     episode_steps: int = _f(1000, 'Environment steps per episode.')
+    train_swap_prob: float = _f(
+        0.0, 'Per timestep and training task, the probability that its parameter jumps to '
+        'another training value mid-episode, window kept (a live swap in training: windows '
+        'that straddle a change, e.g. a target below the running speed). 0 = the paper.')
     reward_in_observation: bool = _f(
         False, 'Append the reward of the transition into each state to the observation '
         '(appendix B.2.1, for reward-varying families: preset there).')
@@ -120,6 +124,8 @@ class ZeusConfig:
             raise ValueError('alpha_psi must be >= 0')
         if self.id_weight < 0:
             raise ValueError('id_weight must be >= 0')
+        if not 0.0 <= self.train_swap_prob <= 1.0:
+            raise ValueError('train_swap_prob must be in [0, 1]')
         if self.method == 'zeus-no-context-loss' and self.alpha_psi != 0:
             raise ValueError('zeus-no-context-loss is the alpha_psi = 0 ablation; '
                              f'got alpha_psi {self.alpha_psi}')

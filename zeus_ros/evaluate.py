@@ -91,17 +91,16 @@ class _Recorder:
 
 
 def model_env(model: InferenceModel, value: float | None = None, seed: int | None = 0,
-              **kwargs) -> ParamEnv:
-    """Make an env of the model's family whose observation is the one the model reads."""
-    return ParamEnv(model.family, value, seed=seed,
+              family: str | None = None, **kwargs) -> ParamEnv:
+    """Make an env (of the model's family by default) observing what the model reads."""
+    return ParamEnv(family or model.family, value, seed=seed,
                     reward_in_obs=model.reward_in_observation, **kwargs)
 
 
 def _episode_env(model, family, value, seed, max_steps, env) -> ParamEnv:
     if env is None:
         kwargs = {} if max_steps is None else {'episode_steps': max_steps}
-        return ParamEnv(family, value, seed=seed, reward_in_obs=model.reward_in_observation,
-                        **kwargs)
+        return model_env(model, value, seed, family, **kwargs)
     if env.obs_dim != model.obs_dim:
         raise ValueError(f'the env observes {env.obs_dim} values, the weights '
                          f'{model.obs_dim} (reward in the observation: '

@@ -13,7 +13,8 @@ Who trains what (every target is computed under `torch.no_grad()`):
   and decoder, on phi(s) detached.
 
 Update schedule (Tables 8-9, SAC-AE/mtrl conventions): every call of `update`
-does one critic step and one method step; the actor and the temperature step
+does one critic step and, for a method with losses of its own
+(`has_own_update`), one method step; the actor and the temperature step
 every `actor_update_freq` (2) updates; the targets (critic heads tau=0.01,
 encoders tau=0.05) move every `critic_target_update_freq` (2) updates.
 Metrics come back as 0-d tensors: converting them is left to whoever logs.

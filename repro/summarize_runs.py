@@ -1,0 +1,105 @@
+"""Tabulate committed adaptation reports over training seeds (mean +- standard error).
+
+    python repro/summarize_runs.py repro/results/cheetah_v1_50k
+
+Runs are grouped by folder name without its seed suffix (`cv1-zeus-s2` ->
+`cv1-zeus`, `cv1-zeus-id-swap-s1` -> `cv1-zeus-id-swap`); each row reads the
+`adaptation.json` that `python -m zeus_ros.adaptation --json` wrote for the
+run (folders without one are listed as missing, not averaged). The README's
+adaptation tables are this script's output on the committed folders.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import defaultdict
+from dataclasses import dataclass
+import json
+import math
+from pathlib import Path
+import re
+import sys
+
+SEED_SUFFIX = re.compile(r'-s(\d+)$')
+
+
+@dataclass(frozen=True)
+class RunFigures:
+    """What one run's adaptation report says, as the table's columns read it."""
+
+    seed: int
+    train_return: float
+    interpolation_return: float
+    extrapolation_return: float | None   # families with an extrapolation split
+    speed_error: float | None     # interpolation, reward-varying families only
+    r2: float | None              # decoded estimate on held-out values; None without a latent
+    largest_gap: float | None     # return lost when the context is perturbed
+
+
+def read_run(folder: Path) -> RunFigures:
+    """Read one run's adaptation.json."""
+    report = json.loads((folder / 'adaptation.json').read_text())
+    returns = {r['split']: r['mean'] for r in report['returns']}
+    velocity = report.get('velocity_error') or {}
+    identification = report.get('identification') or {}
+    use = report.get('context_use') or {}
+    return RunFigures(
+        seed=int(SEED_SUFFIX.search(folder.name).group(1)),
+        train_return=returns['train'], interpolation_return=returns['interpolation'],
+        extrapolation_return=returns.get('extrapolation'),
+        speed_error=velocity.get('mean_per_split', {}).get('interpolation'),
+        r2=identification.get('r2_per_step'), largest_gap=use.get('largest_gap'))
+
+
+def mean_se(values: list[float | None], digits: int) -> str:
+    """'mean +- standard error (n-1 in the variance)', or '-' when nothing was measured."""
+    values = [v for v in values if v is not None]
+    if not values:
+        return '-'
+    mean = sum(values) / len(values)
+    if len(values) == 1:
+        return f'{mean:.{digits}f}'
+    var = sum((v - mean) ** 2 for v in values) / (len(values) - 1)
+    return f'{mean:.{digits}f} +- {math.sqrt(var / len(values)):.{digits}f}'
+
+
+def table(results: Path) -> str:
+    """Markdown table, one row per run group, in folder-name order."""
+    groups: dict[str, list[RunFigures]] = defaultdict(list)
+    missing: list[str] = []
+    for folder in sorted(p for p in results.iterdir() if p.is_dir()):
+        if not SEED_SUFFIX.search(folder.name):
+            continue
+        if not (folder / 'adaptation.json').exists():
+            missing.append(folder.name)
+            continue
+        groups[SEED_SUFFIX.sub('', folder.name)].append(read_run(folder))
+    lines = ['| runs | seeds | train return | interpolation return | extrapolation return | '
+             'interp. \\|speed - target\\| (m/s) | decoded R^2 (held-out) | '
+             'largest return lost, context perturbed |',
+             '|---|---|---|---|---|---|---|---|']
+    for name, runs in groups.items():
+        runs.sort(key=lambda r: r.seed)
+        lines.append(' | '.join([
+            f'| {name}', ', '.join(str(r.seed) for r in runs),
+            mean_se([r.train_return for r in runs], 0),
+            mean_se([r.interpolation_return for r in runs], 0),
+            mean_se([r.extrapolation_return for r in runs], 0),
+            mean_se([r.speed_error for r in runs], 2),
+            mean_se([r.r2 for r in runs], 2),
+            mean_se([r.largest_gap for r in runs], 0)]) + ' |')
+    if missing:
+        lines.append(f'\n(no adaptation report yet: {", ".join(missing)})')
+    return '\n'.join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('results', type=Path, help='a folder of collected runs (collect_runs.py)')
+    args = parser.parse_args(argv)
+    print(table(args.results))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

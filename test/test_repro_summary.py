@@ -1,0 +1,33 @@
+"""repro/summarize_runs.py: the README's adaptation tables over seeds, from committed reports."""
+
+import json
+from pathlib import Path
+import subprocess
+import sys
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _report(folder: Path, train: float, interp: float, r2: float | None) -> None:
+    folder.mkdir(parents=True)
+    report = {'returns': [{'split': 'train', 'mean': train},
+                          {'split': 'interpolation', 'mean': interp}],
+              'identification': None if r2 is None else {'r2_per_step': r2},
+              'context_use': None}
+    (folder / 'adaptation.json').write_text(json.dumps(report))
+
+
+def test_groups_seeds_and_gives_mean_and_standard_error(tmp_path):
+    _report(tmp_path / 'cv1-zeus-s1', -500.0, -600.0, 0.9)
+    _report(tmp_path / 'cv1-zeus-s2', -700.0, -800.0, 0.7)
+    _report(tmp_path / 'cv1-sac-s1', -900.0, -850.0, None)
+    (tmp_path / 'cv1-zeus-s3').mkdir()          # trained, not yet reported
+    out = subprocess.run([sys.executable, str(REPO / 'repro' / 'summarize_runs.py'),
+                          str(tmp_path)], check=True, capture_output=True, text=True).stdout
+    rows = {line.split(' | ')[0].strip('| '): line for line in out.splitlines()
+            if line.startswith('| cv1')}
+    # Two seeds: mean -700, standard error sqrt(((100^2) * 2 / 1) / 2) = 100.
+    assert '| 1, 2 | -600 +- 100 | -700 +- 100 | - |' in rows['cv1-zeus']
+    assert '0.80 +- 0.10' in rows['cv1-zeus']
+    assert rows['cv1-sac'].endswith('| -900 | -850 | - | - | - | - |')
+    assert 'no adaptation report yet: cv1-zeus-s3' in out

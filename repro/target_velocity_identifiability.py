@@ -445,6 +445,9 @@ def main(argv=None) -> int:
                                                  for s in (1, 2, 3)])
     p.add_argument('--episodes', type=int, default=2)
     p.add_argument('--max-steps', type=int, default=1000)
+    p.add_argument('--name', default=NAME,
+                   help='stem of the .md/.csv written to repro/results; the conclusion '
+                        "below is the default runs' (zeus-id), other names get none")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     all_data = {}
@@ -453,10 +456,11 @@ def main(argv=None) -> int:
         all_data[run] = measure(run, args.episodes, args.max_steps)
         print(f'{run}: {time.time() - start:.0f} s', flush=True)
     lines, csv_rows = render(all_data, args.runs)
-    lines += ['## Conclusion', '', CONCLUSION.strip(), '']
+    if args.name == NAME:
+        lines += ['## Conclusion', '', CONCLUSION.strip(), '']
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f'{NAME}.md').write_text('\n'.join(lines) + '\n')
-    with open(RESULTS / f'{NAME}.csv', 'w', newline='') as f:
+    (RESULTS / f'{args.name}.md').write_text('\n'.join(lines) + '\n')
+    with open(RESULTS / f'{args.name}.csv', 'w', newline='') as f:
         writer = csv.DictWriter(f, fieldnames=list(csv_rows[0]))
         writer.writeheader()
         writer.writerows(csv_rows)

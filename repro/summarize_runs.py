@@ -1,6 +1,6 @@
 """Tabulate committed adaptation reports over training seeds (mean +- standard error).
 
-    python repro/summarize_runs.py repro/results/cheetah_v1_50k
+    PYTHONPATH=. python repro/summarize_runs.py repro/results/cheetah_v1_50k
 
 Runs are grouped by folder name without its seed suffix (`cv1-zeus-s2` ->
 `cv1-zeus`, `cv1-zeus-id-swap-s1` -> `cv1-zeus-id-swap`); each row reads the
@@ -15,10 +15,11 @@ import argparse
 from collections import defaultdict
 from dataclasses import dataclass
 import json
-import math
 from pathlib import Path
 import re
 import sys
+
+from zeus_ros.sweep_results import mean_sem
 
 SEED_SUFFIX = re.compile(r'-s(\d+)$')
 
@@ -52,15 +53,12 @@ def read_run(folder: Path) -> RunFigures:
 
 
 def mean_se(values: list[float | None], digits: int) -> str:
-    """'mean +- standard error (n-1 in the variance)', or '-' when nothing was measured."""
+    """'mean +- standard error' of what was measured; the mean for one value, '-' for none."""
     values = [v for v in values if v is not None]
     if not values:
         return '-'
-    mean = sum(values) / len(values)
-    if len(values) == 1:
-        return f'{mean:.{digits}f}'
-    var = sum((v - mean) ** 2 for v in values) / (len(values) - 1)
-    return f'{mean:.{digits}f} +- {math.sqrt(var / len(values)):.{digits}f}'
+    mean, sem = mean_sem(values)
+    return f'{mean:.{digits}f}' if len(values) == 1 else f'{mean:.{digits}f} +- {sem:.{digits}f}'
 
 
 def table(results: Path) -> str:

@@ -1,6 +1,7 @@
 """repro/summarize_runs.py: the README's adaptation tables over seeds, from committed reports."""
 
 import json
+import os
 from pathlib import Path
 import subprocess
 import sys
@@ -23,7 +24,8 @@ def test_groups_seeds_and_gives_mean_and_standard_error(tmp_path):
     _report(tmp_path / 'cv1-sac-s1', -900.0, -850.0, None)
     (tmp_path / 'cv1-zeus-s3').mkdir()          # trained, not yet reported
     out = subprocess.run([sys.executable, str(REPO / 'repro' / 'summarize_runs.py'),
-                          str(tmp_path)], check=True, capture_output=True, text=True).stdout
+                          str(tmp_path)], check=True, capture_output=True, text=True,
+                         env=os.environ | {'PYTHONPATH': str(REPO)}).stdout
     rows = {line.split(' | ')[0].strip('| '): line for line in out.splitlines()
             if line.startswith('| cv1')}
     # Two seeds: mean -700, standard error sqrt(((100^2) * 2 / 1) / 2) = 100.

@@ -271,7 +271,7 @@ def _f(x, digits=2):
 
 
 # -- report -------------------------------------------------------------------------
-def render(all_data: dict, runs: list[str]) -> tuple[list[str], list[dict]]:
+def render(all_data: dict, runs: list[str], name: str = NAME) -> tuple[list[str], list[dict]]:
     """Markdown lines and CSV rows."""
     lines, csv_rows = [], []
     summary_rows = []
@@ -371,7 +371,7 @@ def render(all_data: dict, runs: list[str]) -> tuple[list[str], list[dict]]:
                      f'{_f(rel["below_near_upper"] * 100, 0)} % | {_f(rel["r2_T"])} | '
                      f'{_f(rel["r2_upper"])} | {_f(rel["r2_lower"])} |')
     lines += ['', '## Per target', '',
-              f'CSV: `{NAME}.csv` (same columns and more).', '']
+              f'CSV: `{name}.csv` (same columns and more).', '']
     for run in runs:
         seed_name = Path(run).name
         lines += [f'### {seed_name}', '',
@@ -455,7 +455,7 @@ def main(argv=None) -> int:
         start = time.time()
         all_data[run] = measure(run, args.episodes, args.max_steps)
         print(f'{run}: {time.time() - start:.0f} s', flush=True)
-    lines, csv_rows = render(all_data, args.runs)
+    lines, csv_rows = render(all_data, args.runs, args.name)
     if args.name == NAME:
         lines += ['## Conclusion', '', CONCLUSION.strip(), '']
     RESULTS.mkdir(exist_ok=True)

@@ -19,7 +19,7 @@ from pathlib import Path
 import re
 import sys
 
-from zeus_ros.sweep_results import mean_sem
+from zeus_ros.sweep_results import mean_sem_cell
 
 SEED_SUFFIX = re.compile(r'-s(\d+)$')
 
@@ -55,10 +55,7 @@ def read_run(folder: Path) -> RunFigures:
 def mean_se(values: list[float | None], digits: int) -> str:
     """'mean +- standard error' of what was measured; the mean for one value, '-' for none."""
     values = [v for v in values if v is not None]
-    if not values:
-        return '-'
-    mean, sem = mean_sem(values)
-    return f'{mean:.{digits}f}' if len(values) == 1 else f'{mean:.{digits}f} +- {sem:.{digits}f}'
+    return f'{values[0]:.{digits}f}' if len(values) == 1 else mean_sem_cell(values, digits)
 
 
 def table(results: Path) -> str:

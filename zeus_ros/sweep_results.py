@@ -155,7 +155,8 @@ def adaptation_figures(cfg: SweepConfig, episodes: int = 2) -> dict:
     return out
 
 
-def _cell(values: list[float], digits: int = 0) -> str:
+def mean_sem_cell(values: list[float], digits: int = 0) -> str:
+    """Format a table cell: 'mean +- standard error', or '-' for no values."""
     if not values:
         return '-'
     mean, sem = mean_sem(values)
@@ -198,8 +199,8 @@ def _report_table(family: str, methods: list[str], figures: dict) -> list[str]:
         fig = figures[(family, method)]
         seeds = max(len(v) for v in fig.split_returns.values())
         lines.append(f'| {method} | ' + ' | '.join(
-            _cell(fig.split_returns.get(s, [])) for s in SPLIT_ORDER) +
-            f' | {seeds} | {_cell(fig.r2, 2)} | {_cell(fig.largest_gap)} |')
+            mean_sem_cell(fig.split_returns.get(s, [])) for s in SPLIT_ORDER) +
+            f' | {seeds} | {mean_sem_cell(fig.r2, 2)} | {mean_sem_cell(fig.largest_gap)} |')
     return [*lines, '', *_velocity_table(family, reported, figures)]
 
 
@@ -213,7 +214,7 @@ def _velocity_table(family: str, methods: list[str], figures: dict) -> list[str]
     for method in with_error:
         errors = figures[(family, method)].velocity_error
         lines.append(f'| {method} | ' + ' | '.join(
-            _cell(errors.get(s, []), 3) for s in SPLIT_ORDER) + ' |')
+            mean_sem_cell(errors.get(s, []), 3) for s in SPLIT_ORDER) + ' |')
     return [*lines, '']
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import signal
 import time
 
-from conftest import installed_exe, REPO
+from conftest import helper_script, installed_exe, REPO
 import pytest
 
 WEIGHTS = REPO / 'weights' / 'walker-walk-v0-zeus'
@@ -101,3 +101,10 @@ def test_a_controller_stops_quietly_on_a_signal_while_torch_imports(spawn, name)
     send(importing, PATTERNS['SIGINT twice'])
     assert_quiet_stop(importing, f'{name}, SIGINT twice while torch imports')
     assert STARTED[name] not in importing.output(), 'the signal came after start-up'
+
+
+def test_a_stop_that_start_up_code_turns_into_an_error_still_exits_0(spawn):
+    """A signal inside a native loader (safetensors) comes back as its own error: still a stop."""
+    proc = spawn(helper_script('stop_swallowing_node.py'), 'swallowing')
+    assert_quiet_stop(proc, 'SIGTERM swallowed by start-up code')
+    assert 'could not determine' not in proc.output(), proc.output()

@@ -426,6 +426,19 @@ def run_nodes(node_classes, args=None, fatal: tuple = (), name: str | None = Non
         return 0  # the first signal came while a failed start-up was being reported
 
 
+def _start_failure(error: Exception, where: str, fatal: tuple) -> int:
+    """Exit code 1 and one line for an error a user can fix; re-raise any other."""
+    if isinstance(error, ParameterException):
+        # rclpy words it '<reason>: <parameter name>'; name first reads better.
+        reason, _, parameter = str(error).rpartition(': ')
+        print(f'{where}: parameter {parameter}: {reason}', file=sys.stderr)
+        return 1
+    if isinstance(error, (UnknownParameters, *fatal)):
+        print(f'{where}: {error}', file=sys.stderr)
+        return 1
+    raise error
+
+
 def _run(node_classes: tuple, args, fatal: tuple, stop: StopSignals, name: str) -> int:
     where, nodes = name, []
     try:
@@ -441,18 +454,13 @@ def _run(node_classes: tuple, args, fatal: tuple, stop: StopSignals, name: str) 
         spin_loop(*nodes)
     except (StopRequested, ExternalShutdownException):
         pass
-    except ParameterException as error:
-        # rclpy words it '<reason>: <parameter name>'; name first reads better.
-        reason, _, parameter = str(error).rpartition(': ')
-        print(f'{where}: parameter {parameter}: {reason}', file=sys.stderr)
-        return 1
-    except (UnknownParameters, *fatal) as error:
-        print(f'{where}: {error}', file=sys.stderr)
-        return 1
-    except Exception:
-        if not stop.stopping:
-            raise
-        # Else an error of the context a signal is shutting down: the stop asked for.
+    except Exception as error:
+        if stop.stopping:
+            # A signal came first: whatever failed after it failed because of the
+            # stop (native code, e.g. safetensors' loader, turns the StopRequested
+            # raised inside it into an error of its own), so this is the stop asked for.
+            return 0
+        return _start_failure(error, where, fatal)
     finally:
         stop.ignore()
         _close(nodes, name)

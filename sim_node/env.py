@@ -29,7 +29,8 @@ from dm_control.suite import cheetah, finger, walker
 import mujoco
 import numpy as np
 
-from sim_node.families import domain_model, FamilySpec, get_family
+from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_family,
+                               GOAL_FAMILIES)
 from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout
 
 __all__ = ['check_action', 'ObservationLayout', 'ParamEnv', 'StepResult', 'layout_from_model']
@@ -214,6 +215,11 @@ class PreparedParam:
     value: float
     model: mujoco.MjModel
 
+    @property
+    def values(self) -> tuple[float]:
+        """The value as a family's value tuple (what the sim node's swaps carry)."""
+        return (self.value,)
+
 
 class ParamEnv:
     """A dm_control task whose physical parameter can change at a step boundary."""
@@ -248,6 +254,16 @@ class ParamEnv:
     def param_value(self) -> float:
         """The parameter value in force."""
         return self._value
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """The live parameter's name, as a tuple (what the sim node reads for any family)."""
+        return self.spec.param_names
+
+    @property
+    def param_values(self) -> tuple[float]:
+        """The parameter value in force, as a tuple in `param_names` order."""
+        return (self._value,)
 
     @property
     def joint_names(self) -> tuple[str, ...]:
@@ -346,6 +362,12 @@ class ParamEnv:
                              f'{self.spec.domain} model: it cannot be swapped in place')
         return PreparedParam(value, model)
 
+    def prepare_values(self, values: tuple[float]) -> PreparedParam:
+        """`prepare_param` for a value tuple (the sim node's interface to every family)."""
+        if len(values) != 1:
+            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
+        return self.prepare_param(values[0])
+
     def apply_prepared(self, prepared: PreparedParam) -> None:
         """Put a prepared value into force at a step boundary, keeping the simulator state.
 
@@ -391,3 +413,20 @@ def _copy_state(source, physics) -> None:
         getattr(new, field)[:] = getattr(source, field)
     new.time = source.time
     physics.forward()
+
+
+def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | None = 0):
+    """Return the env of any family the sim node runs: a `ParamEnv`, or Sawyer-Peg-v0's own.
+
+    Both answer what the sim node and its stepper use: reset, step,
+    param_names / param_values, prepare_values / apply_prepared (a live swap),
+    joint_names / joint_positions / joint_velocities (the JointState),
+    actuator_names, control_timestep, step_count.
+    """
+    spec = get_sim_family(family)
+    if spec.name in GOAL_FAMILIES:
+        from sim_node.sawyer import SawyerPegEnv   # sawyer imports this module
+        return SawyerPegEnv(values, seed=seed)
+    if values is not None and len(values) != 1:
+        raise ValueError(f'{family} has one parameter, got {len(values)} values')
+    return ParamEnv(family, None if values is None else values[0], seed=seed)

@@ -1,10 +1,17 @@
 """Registry of parameter-varied environment families (paper appendix, Tables 2-6).
 
-Each family names one physical (or reward) parameter, the values of the
-paper's train / interpolation / extrapolation splits exactly as printed, and a
-wider, physically sane range that live swaps may use. The model edits that put
-a value into force live here too, so the trainer and the sim node build the
-same MuJoCo model for the same value.
+Most families (`FamilySpec`) name one physical (or reward) parameter, the
+values of the paper's train / interpolation / extrapolation splits exactly as
+printed, and a wider, physically sane range that live swaps may use. The model
+edits that put a value into force live here too, so the trainer and the sim
+node build the same MuJoCo model for the same value. Sawyer-Peg-v0
+(`GoalFamilySpec`, Table 7) varies two, the goal's x and y: its tasks are
+value tuples.
+
+Every family describes its live parameters the same way (`live_params`, a
+tuple of `LiveParam`), and the sim node reads only that: a family's values
+are a tuple in `param_names` order. The trainer and the controllers support
+one-parameter families so far (`FamilySpec`).
 """
 
 from __future__ import annotations
@@ -12,6 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 import xml.etree.ElementTree as ElementTree
+
+import numpy as np
 
 
 SPLITS = ('train', 'interpolation', 'extrapolation')
@@ -79,6 +88,40 @@ def _unchanged(xml: str, _value: float) -> str:
 
 
 @dataclass(frozen=True)
+class LiveParam:
+    """One parameter a family varies: its ROS name, unit, default and live-swap range."""
+
+    name: str
+    unit: str
+    default: float
+    live_range: tuple[float, float]
+    description: str
+
+    def check(self, value) -> str | None:
+        """Return why a value cannot be put into force, or None when it can."""
+        lo, hi = self.live_range
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            return f'{self.name} must be a number, got {value!r}'
+        if value != value:
+            return f'{self.name} must not be NaN'
+        if not lo <= value <= hi:
+            return f'{self.name}={value:g} is outside the allowed range [{lo:g}, {hi:g}]'
+        return None
+
+
+def check_param(live_params: tuple[LiveParam, ...], family: str, name: str,
+                value) -> str | None:
+    """Why `name=value` cannot be put into force in `family`, or None when it can."""
+    for param in live_params:
+        if param.name == name:
+            return param.check(value)
+    names = ', '.join(repr(p.name) for p in live_params)
+    return f'unknown parameter {name!r}; {family} has {names}'
+
+
+@dataclass(frozen=True)
 class FamilySpec:
     """One environment family: a dm_control task and one varied parameter."""
 
@@ -102,18 +145,24 @@ class FamilySpec:
             raise ValueError(f'unknown split {name!r}; expected one of {SPLITS}')
         return getattr(self, name)
 
+    @property
+    def live_params(self) -> tuple[LiveParam, ...]:
+        """The one parameter, as every family describes its parameters."""
+        return (LiveParam(self.param_name, self.param_unit, self.default, self.live_range,
+                          self.description),)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """Names of the live parameters, in the order of a value tuple."""
+        return (self.param_name,)
+
     def check_value(self, value: float) -> str | None:
         """Return why a value cannot be put into force, or None when it can."""
-        lo, hi = self.live_range
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            return f'{self.param_name} must be a number, got {value!r}'
-        if value != value:
-            return f'{self.param_name} must not be NaN'
-        if not lo <= value <= hi:
-            return f'{self.param_name}={value:g} is outside the allowed range [{lo:g}, {hi:g}]'
-        return None
+        return self.live_params[0].check(value)
+
+    def check_param(self, name: str, value) -> str | None:
+        """Return why `name=value` cannot be put into force, or None when it can."""
+        return check_param(self.live_params, self.name, name, value)
 
 
 FAMILIES: dict[str, FamilySpec] = {
@@ -187,6 +236,96 @@ FAMILIES: dict[str, FamilySpec] = {
 }
 
 
+# Sawyer-Peg-v0 (Table 7, from MELD). Its goal is the hole's position in MELD's
+# frame: x forward from the robot's base, y to its left (m).
+SAWYER_PEG = 'sawyer-peg-v0'
+TABLE7_X_RANGES = ((0.44, 0.45), (0.6, 0.61))
+TABLE7_Y_RANGES = ((-0.08, -0.07), (0.07, 0.08))
+# MELD drew its evaluation tasks from seed 0 and its training tasks from seed 1.
+TABLE7_SEEDS = {'train': 1, 'interpolation': 0}
+GOALS_PER_SPLIT = 8        # two per (x range, y range) cluster, as the other families' 8
+
+
+def table7_goals(split: str) -> tuple[tuple[float, float], ...]:
+    """Return the split's (x, y) hole positions, drawn per Table 7 from a fixed seed.
+
+    Each draw takes the four (x range, y range) clusters in turn and a uniform
+    point in it, as MELD placed its four boxes. The paper has one evaluation
+    split, stored as `interpolation` (as cheetah-run-v1's Table 6);
+    `extrapolation` is empty.
+    """
+    if split not in SPLITS:
+        raise ValueError(f'unknown split {split!r}; expected one of {SPLITS}')
+    if split not in TABLE7_SEEDS:
+        return ()
+    rng = np.random.default_rng(TABLE7_SEEDS[split])
+    clusters = [(xr, yr) for xr in TABLE7_X_RANGES for yr in TABLE7_Y_RANGES]
+    goals = []
+    for i in range(GOALS_PER_SPLIT):
+        x_range, y_range = clusters[i % len(clusters)]
+        goals.append((float(rng.uniform(*x_range)), float(rng.uniform(*y_range))))
+    return tuple(goals)
+
+
+@dataclass(frozen=True)
+class GoalFamilySpec:
+    """A family whose tasks are goal positions: several named parameters, values as tuples.
+
+    Sawyer-Peg-v0 is the one such family. Its goal moves the hole the peg goes
+    into: only the reward changes, and a swap writes the block's position into
+    the live model (no recompile).
+    """
+
+    name: str
+    domain: str
+    live_params: tuple[LiveParam, ...]
+    train: tuple[tuple[float, ...], ...]
+    interpolation: tuple[tuple[float, ...], ...]
+    extrapolation: tuple[tuple[float, ...], ...]
+    description: str
+    reward_varies_only: bool = True
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """Names of the live parameters, in the order of a value tuple."""
+        return tuple(p.name for p in self.live_params)
+
+    @property
+    def defaults(self) -> tuple[float, ...]:
+        """What a sim starts with before any task is set."""
+        return tuple(p.default for p in self.live_params)
+
+    def split(self, name: str) -> tuple[tuple[float, ...], ...]:
+        """Goal positions of a split: train, interpolation or extrapolation."""
+        if name not in SPLITS:
+            raise ValueError(f'unknown split {name!r}; expected one of {SPLITS}')
+        return getattr(self, name)
+
+    def check_param(self, name: str, value) -> str | None:
+        """Return why `name=value` cannot be put into force, or None when it can."""
+        return check_param(self.live_params, self.name, name, value)
+
+
+# The live ranges keep the block on the table, within the arm's reach and clear of
+# the peg at the start pose; the default lies between Table 7's four clusters.
+GOAL_FAMILIES: dict[str, GoalFamilySpec] = {
+    SAWYER_PEG: GoalFamilySpec(
+        name=SAWYER_PEG, domain='sawyer',
+        live_params=(
+            LiveParam('goal_x', 'm', 0.525, (0.40, 0.65),
+                      'Sawyer peg insertion; x of the hole, forward from the robot base '
+                      '(Table 7).'),
+            LiveParam('goal_y', 'm', 0.0, (-0.15, 0.15),
+                      "Sawyer peg insertion; y of the hole, to the robot's left (Table 7).")),
+        train=table7_goals('train'), interpolation=table7_goals('interpolation'),
+        extrapolation=(),
+        description='Sawyer arm inserting a held peg into a hole whose position varies '
+                    "(Table 7, MELD's reward without its offset); the reward is observed."),
+}
+# Every family the sim node runs, by name.
+SIM_FAMILIES: dict[str, FamilySpec | GoalFamilySpec] = {**FAMILIES, **GOAL_FAMILIES}
+
+
 def domain_model(domain: str) -> tuple[str, dict]:
     """Return the dm_control model XML and assets of a domain (walker, cheetah, finger).
 
@@ -201,8 +340,20 @@ def domain_model(domain: str) -> tuple[str, dict]:
 
 
 def get_family(name: str) -> FamilySpec:
-    """Look a family up by name, with the known names in the error."""
+    """Look a one-parameter family up by name (what the trainer and controllers run)."""
     try:
         return FAMILIES[name]
     except KeyError:
-        raise ValueError(f'unknown family {name!r}; known: {", ".join(FAMILIES)}') from None
+        if name in GOAL_FAMILIES:
+            raise ValueError(f'{name} has {len(GOAL_FAMILIES[name].live_params)} parameters; '
+                             'the trainer and the controller nodes run one-parameter families '
+                             f'so far ({", ".join(FAMILIES)}); sim_node runs it') from None
+        raise ValueError(f'unknown family {name!r}; known: {", ".join(SIM_FAMILIES)}') from None
+
+
+def get_sim_family(name: str) -> FamilySpec | GoalFamilySpec:
+    """Look any family up by name, with the known names in the error."""
+    try:
+        return SIM_FAMILIES[name]
+    except KeyError:
+        raise ValueError(f'unknown family {name!r}; known: {", ".join(SIM_FAMILIES)}') from None

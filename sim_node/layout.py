@@ -24,7 +24,9 @@ class ObservationLayout:
 
     Per joint, in model order: its position, or (cos, sin) for a hinge without
     limits (a free rotation, which would otherwise wrap), or nothing for the
-    dropped horizontal position; then every joint velocity. With
+    dropped horizontal position; then every joint velocity, except where
+    `velocity_encoding` says 'drop' (an entry with no velocity of its own,
+    such as the Sawyer's commanded hand position; None: keep all). With
     `reward_in_observation` (the appendix's choice for families whose tasks
     differ only in the reward), the reward of the transition INTO the state
     comes last (0 for an episode's first state): on ROS it is the StepInfo
@@ -34,13 +36,19 @@ class ObservationLayout:
     joint_names: tuple[str, ...]
     position_encoding: tuple[str, ...]  # 'raw', 'angle' (cos, sin) or 'drop'
     reward_in_observation: bool = False
+    velocity_encoding: tuple[str, ...] | None = None   # 'raw' or 'drop'; None: all 'raw'
 
     @property
     def size(self) -> int:
         """Length of the observation vector."""
         width = {'raw': 1, 'angle': 2, 'drop': 0}
-        joints = sum(width[e] for e in self.position_encoding) + len(self.joint_names)
-        return joints + int(self.reward_in_observation)
+        positions = sum(width[e] for e in self.position_encoding)
+        return positions + len(self._kept_velocities()) + int(self.reward_in_observation)
+
+    def _kept_velocities(self) -> list[int]:
+        if self.velocity_encoding is None:
+            return list(range(len(self.joint_names)))
+        return [i for i, e in enumerate(self.velocity_encoding) if e == 'raw']
 
     def observation(self, positions: np.ndarray, velocities: np.ndarray,
                     reward: float = 0.0) -> np.ndarray:
@@ -55,8 +63,10 @@ class ObservationLayout:
             elif encoding == 'angle':
                 parts.extend((math.cos(q), math.sin(q)))
         tail = [float(reward)] if self.reward_in_observation else []
-        return np.concatenate([np.asarray(parts, dtype=np.float64),
-                               np.asarray(velocities, dtype=np.float64),
+        velocities = np.asarray(velocities, dtype=np.float64)
+        if self.velocity_encoding is not None:
+            velocities = velocities[self._kept_velocities()]
+        return np.concatenate([np.asarray(parts, dtype=np.float64), velocities,
                                np.asarray(tail, dtype=np.float64)])
 
     def with_reward(self, observation: np.ndarray, reward: float) -> np.ndarray:

@@ -6,8 +6,9 @@ its stamp (zero action after `command_timeout`); in `realtime` mode the node
 steps on an absolute tick schedule at the control rate times
 `real_time_factor`, on the latest command. Both the tick and the lockstep
 watchdog are the loop deadline that `zeus_ros.ros.loop_spin.spin_loop` waits for.
-The family's physical parameter is a ROS parameter: setting it puts the new
-physics into force at the next step boundary, the robot's state carried over.
+The family's physical parameters (one for most families; goal_x and goal_y for
+sawyer-peg-v0) are ROS parameters: setting one, or several at once, puts the
+new physics into force at the next step boundary, the robot's state carried over.
 
 Episodes and seeds: an episode starts at `~/reset` or after the last one's
 last step. A new value of the `seed` parameter restarts the random stream of
@@ -52,12 +53,12 @@ from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
 
 from sim_node.camera import CameraPublisher
-from sim_node.env import ParamEnv
-from sim_node.families import FAMILIES, get_family
+from sim_node.env import make_env
+from sim_node.families import GOAL_FAMILIES, get_sim_family, SIM_FAMILIES
 from sim_node.protocol import (check_reset_request, KEEP_STREAM, loop_problem,
                                parse_command, RecentCounts, SEED_MAX)
 from sim_node.stepper import MODES, PublishedState, SimStepper, StepOutcome
-from sim_node.swaps import SwapQueue
+from sim_node.swaps import format_values, SwapQueue
 from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
 from zeus_ros.ros.util import describe as _describe
 from zeus_ros.ros.util import (accept_integers_for_doubles, declare_double,
@@ -91,8 +92,9 @@ class SimNode(Node):
         self.add_post_set_parameters_callback(self.apply_parameters_callback)
 
         seed = self._param('seed')
-        self.env = ParamEnv(self.spec.name, self._param(self.spec.param_name), seed=seed)
-        self.swaps = SwapQueue(self.env.prepare_param)   # builds swapped physics off the loop
+        self.env = make_env(self.spec.name, tuple(self._param(n) for n in self.live_names),
+                            seed=seed)
+        self.swaps = SwapQueue(self.env.prepare_values)   # builds swapped physics off the loop
         self.stepper = SimStepper(self.env, self.publish_state, self.swaps, seed=seed)
         self.recent = RecentCounts()   # the diagnostics level reads the counters' recent rises
         self.warnings = ThrottledWarnings(self.get_logger())
@@ -101,7 +103,7 @@ class SimNode(Node):
         self._create_interfaces()
         self._configure_stepping()
         self.get_logger().info(
-            f'{self.spec.name}: {self.spec.param_name}={self.env.param_value:g}, '
+            f'{self.spec.name}: {self._values_text(self.env.param_values)}, '
             f'mode={self.stepper.mode}, control period {self.env.control_timestep:g} s')
         self.stepper.start()
         # Held while the stepper changes the physics; the camera copies qpos under it
@@ -130,10 +132,10 @@ class SimNode(Node):
     # -- parameters -----------------------------------------------------------
     def _declare_parameters(self) -> None:
         """Declare every parameter and check what start-up gave, before anything runs."""
-        self.spec = get_family(self.declare_parameter('family', 'walker-walk-v0', _describe(
-            f'Environment family (read-only): one of {", ".join(FAMILIES)}.',
+        self.spec = get_sim_family(self.declare_parameter('family', 'walker-walk-v0', _describe(
+            f'Environment family (read-only): one of {", ".join(SIM_FAMILIES)}.',
             read_only=True)).value)
-        lo, hi = self.spec.live_range
+        self.live_names = self.spec.param_names
         self.declare_parameter('seed', 0, _describe(
             'Seed of the random stream of initial states; a new value restarts the stream '
             'at the next episode start.',
@@ -152,55 +154,68 @@ class SimNode(Node):
             'off-screen on a thread of their own; 0 = off (nothing created). Read-only.',
             read_only=True,
             floating_point_range=[FloatingPointRange(from_value=0.0, to_value=60.0)]))
-        declare_double(self, self.spec.param_name, self.spec.default, _describe(
-            f'{self.spec.description} Live swap: takes effect at a step boundary once its '
-            'model is compiled (a few ms; lockstep: the next step).',
-            floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi)]))
+        for live in self.spec.live_params:
+            declare_double(self, live.name, live.default, _describe(
+                f'{live.description} Live swap: takes effect at a step boundary once its '
+                'model is compiled (a few ms; lockstep: the next step).',
+                floating_point_range=[FloatingPointRange(from_value=live.live_range[0],
+                                                         to_value=live.live_range[1])]))
         declare_thread_priority(self)
         unknown = unknown_overrides(self)
         if unknown:
             raise UnknownParameters(f'unknown parameter {", ".join(unknown)} for '
                                     f'{self.spec.name}; {self._parameters_text()}')
         # The same checks as a live set (a declaration checks only type and range).
-        for name in (self.spec.param_name, 'mode'):
+        for name in (*self.spec.param_names, 'mode'):
             reason = self._parameter_problem(self.get_parameter(name))
             if reason is not None:
                 raise ValueError(f'parameter {name}: {reason}')
+        if self.spec.name in GOAL_FAMILIES and self._param('camera_rate') > 0:
+            raise ValueError(f'parameter camera_rate: {self.spec.name} has no camera yet; '
+                             'leave camera_rate at 0')
 
     def _parameters_text(self) -> str:
-        others = [name for name in parameter_names(self) if name != self.spec.param_name]
+        live = self.spec.param_names
+        others = [name for name in parameter_names(self) if name not in live]
         others.sort(key=lambda name: name in RCLPY_PARAMETERS)  # the sim's own first
-        return (f"its parameters: {self.spec.param_name} (the family's physical parameter), "
-                f'{", ".join(others)}')
+        what = ("the family's physical parameter" if len(live) == 1
+                else "the family's live parameters")
+        return f'its parameters: {", ".join(live)} ({what}), {", ".join(others)}'
+
+    def _values_text(self, values) -> str:
+        return ', '.join(f'{n}={v:g}' for n, v in zip(self.live_names, values, strict=True))
+
+    def _live_changes(self, params: list[Parameter]) -> dict[str, float]:
+        return {p.name: float(p.value) for p in params if p.name in self.live_names}
 
     def _param(self, name: str):
         return self.get_parameter(name).value
 
     def validate_parameters_callback(self, params: list[Parameter]) -> SetParametersResult:
-        for param in params:
-            reason = self._parameter_problem(param)
-            if reason is None and param.name == self.spec.param_name:
-                reason = self.stepper.swap_refusal(param.value)   # too many swaps waiting
-            if reason is not None:
-                return SetParametersResult(successful=False, reason=reason)
-        return SetParametersResult(successful=True)
+        reasons = (self._parameter_problem(param) for param in params)
+        reason = next((r for r in reasons if r is not None), None)
+        changes = self._live_changes(params)
+        if reason is None and changes:   # several at once are one swap
+            reason = self.stepper.swap_refusal(self.stepper.with_changes(changes))  # queue full
+        return SetParametersResult(successful=reason is None, reason=reason or '')
 
     def _parameter_problem(self, param: Parameter) -> str | None:
         if not self.has_parameter(param.name):
             return f'{self.spec.name} has no parameter {param.name!r}; {self._parameters_text()}'
-        if param.name == self.spec.param_name:
+        if param.name in self.live_names:
             if param.type_ not in (Parameter.Type.DOUBLE, Parameter.Type.INTEGER):
                 return f'{param.name} must be a number, got {param.type_.name}'
-            return self.spec.check_value(param.value)
+            return self.spec.check_param(param.name, param.value)
         if param.name == 'mode' and param.value not in MODES:
             return f'mode must be one of {MODES}, got {param.value!r}'
         return None
 
     def apply_parameters_callback(self, params: list[Parameter]) -> None:
+        changes = self._live_changes(params)
+        if changes:
+            self.stepper.request_swap(self.stepper.with_changes(changes))
         for param in params:
-            if param.name == self.spec.param_name:
-                self.stepper.request_swap(float(param.value))
-            elif param.name == 'seed':
+            if param.name == 'seed':
                 self.stepper.pending_seed = int(param.value)
             elif param.name in ('mode', 'real_time_factor', 'command_timeout'):
                 self._configure_stepping()
@@ -244,8 +259,8 @@ class SimNode(Node):
             self.warnings.warn('timeout', f'no command within {self.stepper.command_timeout} s;'
                                           ' applying zero action')
         for swap in outcome.swaps:
-            self.get_logger().info(
-                f'{self.spec.param_name}: {swap.old:g} -> {swap.new:g} at {swap.where}')
+            self.get_logger().info(f'{", ".join(self.live_names)}: {format_values(swap.old)} -> '
+                                   f'{format_values(swap.new)} at {swap.where}')
         if outcome.instability is not None:
             self.get_logger().warning(f'MuJoCo instability ({outcome.instability}); '
                                       'episode reset')
@@ -259,8 +274,8 @@ class SimNode(Node):
                         terminal=state.terminal, truncated=state.truncated,
                         applied_action=[] if state.applied_action is None
                         else state.applied_action.tolist(),
-                        family=self.spec.name, param_names=[self.spec.param_name],
-                        param_values=[state.param_value])
+                        family=self.spec.name, param_names=list(self.live_names),
+                        param_values=list(state.param_values))
         step.header = joint_state.header
         clock = Clock()
         clock.clock = joint_state.header.stamp
@@ -291,11 +306,11 @@ class SimNode(Node):
                   else f'stream of seed {stepper.stream_seed} continued')
         response.success, response.episode = True, stepper.episode
         response.message = (f'episode {stepper.episode}: {stream}, '
-                            f'{self.spec.param_name}={self.env.param_value:g}')
+                            f'{self._values_text(self.env.param_values)}')
         if superseded:
-            response.message += (f' ({self.spec.param_name} '
-                                 f'{", ".join(f"{v:g}" for v in superseded)} set before it '
-                                 'and not yet in force: superseded)')
+            response.message += (f' ({", ".join(self.live_names)} '
+                                 f'{", ".join(format_values(v) for v in superseded)} set '
+                                 'before it and not yet in force: superseded)')
         self.get_logger().info(f'reset to {response.message}')
         return response
 
@@ -314,7 +329,8 @@ class SimNode(Node):
         counters = self.stepper.counters
         recent = self.recent.rises(time.monotonic(), counters)
         values = dict(counters, episode=self.stepper.episode, step=self.env.step_count,
-                      mode=self.stepper.mode, **{self.spec.param_name: self.env.param_value},
+                      mode=self.stepper.mode,
+                      **dict(zip(self.live_names, self.env.param_values, strict=True)),
                       swaps_waiting=len(self.swaps), window_s=self.recent.window_s,
                       recent_steps=recent['steps'], recent_answered=recent['answered'],
                       **self.step_rate.report(), **self.tick_lateness.report())

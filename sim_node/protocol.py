@@ -9,7 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_node.layout import check_action
-from sim_node.families import FamilySpec
+from sim_node.families import FamilySpec, GoalFamilySpec
 
 NANOSECONDS = 1_000_000_000
 # Reset.seed: -1 keeps the random stream of initial states; 0 <= seed < 2**32
@@ -55,11 +55,11 @@ def check_seed(seed: int) -> str | None:
 
 
 def check_reset_request(seed: int, names: Sequence[str], values: Sequence[float],
-                        spec: FamilySpec) -> str | None:
+                        spec: FamilySpec | GoalFamilySpec) -> str | None:
     """Return why a reset request is refused, or None.
 
-    A valid seed (check_seed); one value per name; each name the family's
-    parameter, at most once (two values for one name leave nothing to choose
+    A valid seed (check_seed); one value per name; each name one of the
+    family's live parameters, at most once (two values for one name leave nothing to choose
     between), each value in its live range.
     """
     names, values = list(names), list(values)
@@ -72,9 +72,7 @@ def check_reset_request(seed: int, names: Sequence[str], values: Sequence[float]
     if repeated:
         return f'parameter {", ".join(repeated)} given more than once'
     for name, value in zip(names, values, strict=True):
-        if name != spec.param_name:
-            return f'unknown parameter {name!r}; {spec.name} has {spec.param_name!r}'
-        reason = spec.check_value(value)
+        reason = spec.check_param(name, value)
         if reason is not None:
             return reason
     return None

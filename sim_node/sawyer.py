@@ -1,8 +1,8 @@
 """Sawyer-Peg-v0 (appendix Table 7, from MELD, Zhao et al. 2020): a Sawyer arm inserts a peg.
 
-Simulation layer only, not yet in `families.FAMILIES`: the nodes and the
-trainer assume one scalar parameter, and this family has two, `goal_x` and
-`goal_y`, the position of the hole the peg must go into.
+The family (`families.GOAL_FAMILIES`) has two live parameters, `goal_x` and
+`goal_y`, the position of the hole the peg must go into; the sim node runs
+it (`sim_node -p family:=sawyer-peg-v0`), the trainer not yet.
 
 Model source. The scene is metaworld 3.1.1's `sawyer_peg_insertion_side.xml`
 (MIT licence): the Sawyer arm with its two-finger gripper, driven through a
@@ -28,6 +28,13 @@ horizontally above the table; the goal is the point `INSERT_DEPTH` inside the
 block's channel, behind the hole the policy never observes. It has to infer
 it from the reward, which is concatenated to the observation (appendix B.2.1,
 as MELD does for its reward-varying tasks).
+
+What the sim publishes and the policy observes are the same named entries
+(`ENTRIES`), so a controller node builds the observation from a JointState
+without MuJoCo, as for the other families: the arm's and the fingers' joints,
+then, as entries of their own, the hand (the endEffector site), the
+commanded hand position, the peg's position and the vector part of its
+orientation (w >= 0), each position with its velocity (the command has none).
 """
 
 from __future__ import annotations
@@ -42,25 +49,14 @@ import mujoco
 import numpy as np
 
 from sim_node.env import StepResult
-from sim_node.families import SPLITS
-from sim_node.layout import check_action
+from sim_node.families import GOAL_FAMILIES, SAWYER_PEG
+from sim_node.layout import check_action, ObservationLayout
 
-FAMILY_NAME = 'sawyer-peg-v0'
-PARAM_NAMES = ('goal_x', 'goal_y')
+SPEC = GOAL_FAMILIES[SAWYER_PEG]
+FAMILY_NAME = SPEC.name
+PARAM_NAMES = SPEC.param_names       # ('goal_x', 'goal_y'): Table 7's frame, m
 METAWORLD_VERSION = '3.1.1'
 SCENE_FILE = 'assets/sawyer_xyz/sawyer_peg_insertion_side.xml'
-
-# Table 7, in MELD's frame: x forward from the robot's base, y to its left (m).
-TABLE7_X_RANGES = ((0.44, 0.45), (0.6, 0.61))
-TABLE7_Y_RANGES = ((-0.08, -0.07), (0.07, 0.08))
-# MELD drew its evaluation tasks from seed 0 and its training tasks from seed 1.
-TABLE7_SEEDS = {'train': 1, 'interpolation': 0}
-GOALS_PER_SPLIT = 8        # two per (x range, y range) cluster, as the other families' 8
-# Between the four clusters; what a node starts with before any task is set.
-DEFAULT_GOAL = (0.525, 0.0)
-# Where a live swap may put the hole: the block stays on the table, within reach,
-# and clear of the peg at the start pose (HOME_HAND).
-GOAL_LIVE_RANGE = {'goal_x': (0.40, 0.65), 'goal_y': (-0.15, 0.15)}
 
 EPISODE_STEPS = 40                  # Table 9's horizon
 CONTROL_TIMESTEP = 0.05             # s; 20 MuJoCo steps of 2.5 ms
@@ -80,12 +76,14 @@ _GRASP_BELOW_PADS = 0.015           # m: the peg sits inside the pads' height
 _SETTLE_STEPS = 100                 # MuJoCo steps after placing the hand at reset
 
 
-@dataclass(frozen=True)
-class GoalPosition:
-    """A hole position in Table 7's frame (x forward, y left of the robot's base), m."""
+Goal = tuple[float, float]   # (goal_x, goal_y), Table 7's frame
 
-    x: float
-    y: float
+
+@dataclass(frozen=True)
+class PreparedGoal:
+    """A checked goal, not yet in force (the shape of `ParamEnv.prepare_values`' answer)."""
+
+    values: Goal
 
 
 @dataclass(frozen=True)
@@ -114,38 +112,18 @@ def meld_reward(distance: float) -> float:
     return -(scaled_sq + math.log10(scaled_sq + REWARD_EPS))
 
 
-def table7_goals(split: str) -> tuple[GoalPosition, ...]:
-    """Return the split's hole positions, drawn per Table 7 from a fixed seed (always the same).
-
-    Each draw takes the four (x range, y range) clusters in turn and a uniform
-    point in it, as MELD placed its four boxes. The paper has one evaluation
-    split, stored as `interpolation` (as cheetah-run-v1's Table 6);
-    `extrapolation` is empty.
-    """
-    if split not in SPLITS:
-        raise ValueError(f'unknown split {split!r}; expected one of {SPLITS}')
-    if split not in TABLE7_SEEDS:
-        return ()
-    rng = np.random.default_rng(TABLE7_SEEDS[split])
-    clusters = [(xr, yr) for xr in TABLE7_X_RANGES for yr in TABLE7_Y_RANGES]
-    goals = []
-    for i in range(GOALS_PER_SPLIT):
-        x_range, y_range = clusters[i % len(clusters)]
-        goals.append(GoalPosition(float(rng.uniform(*x_range)), float(rng.uniform(*y_range))))
-    return tuple(goals)
-
-
-def check_goal_value(name: str, value) -> str | None:
-    """Why a goal coordinate cannot be put into force, or None when it can."""
-    if name not in GOAL_LIVE_RANGE:
-        return f'unknown parameter {name!r}; expected one of {PARAM_NAMES}'
+def check_goal(values) -> str | None:
+    """Why a goal (goal_x, goal_y) cannot be put into force, or None when it can."""
     try:
-        value = float(value)
-    except (TypeError, ValueError):
-        return f'{name} must be a number, got {value!r}'
-    lo, hi = GOAL_LIVE_RANGE[name]
-    if not lo <= value <= hi:   # also refuses NaN
-        return f'{name}={value:g} is outside the allowed range [{lo:g}, {hi:g}]'
+        values = tuple(values)
+    except TypeError:
+        return f'a goal is ({", ".join(PARAM_NAMES)}), got {values!r}'
+    if len(values) != len(PARAM_NAMES):
+        return f'a goal is ({", ".join(PARAM_NAMES)}), got {len(values)} values'
+    for name, value in zip(PARAM_NAMES, values, strict=True):
+        reason = SPEC.check_param(name, value)
+        if reason is not None:
+            return reason
     return None
 
 
@@ -173,29 +151,33 @@ def build_model() -> mujoco.MjModel:
     return spec.compile()
 
 
-# The observation, in this order (`SawyerPegEnv.observation`). The goal is not in
-# it: the policy has to infer it, from the previous reward above all.
-OBSERVATION_FIELDS = (
-    ('hand_position', 3),          # the endEffector site between the fingertips, world (m)
-    ('hand_target_lead', 3),       # commanded (mocap) minus actual hand position: the
-                                   # command persists between steps, so it is state
-    ('gripper_opening', 1),        # distance between the fingertips (m)
-    ('peg_position', 3),           # peg body, world (m)
-    ('peg_quaternion', 4),         # w >= 0 (q and -q are the same rotation)
-    ('arm_joint_positions', 7),    # right_j0 .. right_j6 (rad)
-    ('arm_joint_velocities', 7),   # (rad/s)
-    ('previous_reward', 1),        # the reward of the step that led here; 0 after reset
-)
-OBS_DIM = sum(size for _, size in OBSERVATION_FIELDS)
 ARM_JOINTS = tuple(f'right_j{i}' for i in range(7))
+FINGER_JOINTS = ('r_close', 'l_close')
+_XYZ = ('x', 'y', 'z')
+# The JointState entries the sim publishes, which are the observation: positions
+# of all, velocities of all but the command's, then the reward into the state.
+# The goal is not in it: the policy has to infer it, from the reward above all.
+ENTRIES = (ARM_JOINTS + FINGER_JOINTS
+           + tuple(f'hand_{a}' for a in _XYZ)           # endEffector site, world (m, m/s)
+           + tuple(f'hand_target_{a}' for a in _XYZ)    # the commanded (mocap) position:
+                                                        # it persists between steps: state
+           + tuple(f'peg_{a}' for a in _XYZ)            # peg body, world (m, m/s)
+           + tuple(f'peg_q{a}' for a in _XYZ))          # orientation's vector part (w >= 0);
+                                                        # velocity: the angular one (rad/s)
+NO_VELOCITY = frozenset(f'hand_target_{a}' for a in _XYZ)
+LAYOUT = ObservationLayout(ENTRIES, ('raw',) * len(ENTRIES), reward_in_observation=True,
+                           velocity_encoding=tuple('drop' if e in NO_VELOCITY else 'raw'
+                                                   for e in ENTRIES))
+OBS_DIM = LAYOUT.size
+HAND = slice(ENTRIES.index('hand_x'), ENTRIES.index('hand_x') + 3)   # in the observation
 # Action: hand displacement (x, y, z in the world frame, x MAX_HAND_STEP) and gripper
 # (+1 closes, -1 opens), all in [-1, 1].
 ACTION_NAMES = ('hand_dx', 'hand_dy', 'hand_dz', 'gripper')
 
 
-def table7_to_world(goal: GoalPosition) -> np.ndarray:
+def table7_to_world(goal: Goal) -> np.ndarray:
     """Table 7's (x forward, y left) as the scene's world xy (y forward, x to the right)."""
-    return np.array([-goal.y, goal.x])
+    return np.array([-goal[1], goal[0]])
 
 
 @dataclass(frozen=True)
@@ -210,8 +192,8 @@ class _Ids:
     hole: int
     hand_body: int
     box_body: int
-    arm_qpos: np.ndarray
-    arm_qvel: np.ndarray
+    joint_qpos: np.ndarray      # arm, then fingers
+    joint_qvel: np.ndarray
     peg_qpos: int
     peg_qvel: int
 
@@ -230,8 +212,8 @@ class _Ids:
             pads=(geom('rightpad_geom'), geom('leftpad_geom')),
             peg_tip=site('pegHead'), peg_grasp=site('pegGrasp'), hole=site('hole'),
             hand_body=model.body('hand').id, box_body=model.body('box').id,
-            arm_qpos=np.array([model.joint(j).qposadr[0] for j in ARM_JOINTS]),
-            arm_qvel=np.array([model.joint(j).dofadr[0] for j in ARM_JOINTS]),
+            joint_qpos=np.array([model.joint(j).qposadr[0] for j in ARM_JOINTS + FINGER_JOINTS]),
+            joint_qvel=np.array([model.joint(j).dofadr[0] for j in ARM_JOINTS + FINGER_JOINTS]),
             peg_qpos=int(model.jnt_qposadr[peg_joint]),
             peg_qvel=int(model.jnt_dofadr[peg_joint]))
 
@@ -306,23 +288,27 @@ class SawyerPegEnv:
     steps); an episode is EPISODE_STEPS control steps.
     """
 
-    def __init__(self, goal: GoalPosition | None = None, seed: int | None = 0,
+    def __init__(self, values: Goal | None = None, seed: int | None = 0,
                  episode_steps: int = EPISODE_STEPS):
+        self.spec = SPEC
         self._model = build_model()
         self._data = mujoco.MjData(self._model)
         self._ids = _Ids.of(self._model)
         self._n_substeps = int(round(CONTROL_TIMESTEP / self._model.opt.timestep))
         self.episode_steps = episode_steps
         self.control_timestep = CONTROL_TIMESTEP
+        self.layout = LAYOUT
+        self.actuator_names = ACTION_NAMES
         self._random = np.random.RandomState(seed)
         self._hole_in_box = self._measure_hole_in_box()
         # Computed with the block at the scene's own place, far from the hand: the
         # start state is the same whatever goal is set later.
         self._home = _grasp_peg(self._model, self._data, self._ids)
-        self._goal = GoalPosition(*DEFAULT_GOAL)
-        self.set_goal(goal or self._goal)
+        self._goal = SPEC.defaults
+        self.set_goal(SPEC.defaults if values is None else values)
         self.step_count = 0
         self._previous_reward = 0.0
+        self._velocity = np.zeros(6)   # mj_objectVelocity's output, reused
         self.reset()
 
     # -- properties -------------------------------------------------------
@@ -332,18 +318,28 @@ class SawyerPegEnv:
         return FAMILY_NAME
 
     @property
-    def goal(self) -> GoalPosition:
+    def goal(self) -> Goal:
         """The hole position in force (Table 7's frame)."""
         return self._goal
 
     @property
-    def param_values(self) -> dict[str, float]:
-        """The live parameters in force, by ROS name."""
-        return {'goal_x': self._goal.x, 'goal_y': self._goal.y}
+    def param_names(self) -> tuple[str, ...]:
+        """The live parameters, in the order of `param_values`."""
+        return PARAM_NAMES
+
+    @property
+    def param_values(self) -> Goal:
+        """The live parameters in force: (goal_x, goal_y)."""
+        return self._goal
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """The JointState entries the sim publishes (ENTRIES)."""
+        return ENTRIES
 
     @property
     def obs_dim(self) -> int:
-        """Length of the observation vector (OBSERVATION_FIELDS)."""
+        """Length of the observation vector."""
         return OBS_DIM
 
     @property
@@ -420,28 +416,39 @@ class SawyerPegEnv:
     # -- the goal (live parameters) ---------------------------------------
     def set_param(self, name: str, value: float) -> None:
         """Put one goal coordinate (goal_x or goal_y) into force, keeping the state."""
-        reason = check_goal_value(name, value)
+        reason = SPEC.check_param(name, value)
         if reason is not None:
             raise ValueError(reason)
-        values = self.param_values | {name: float(value)}
-        self.set_goal(GoalPosition(values['goal_x'], values['goal_y']))
+        values = dict(zip(PARAM_NAMES, self._goal, strict=True)) | {name: float(value)}
+        self.set_goal(tuple(values[n] for n in PARAM_NAMES))
 
-    def set_goal(self, goal: GoalPosition) -> None:
+    def set_goal(self, goal: Goal) -> None:
         """Move the block so its hole is at `goal`, in the live model, keeping the state.
 
         The block is a static body, so this is a write of its position and
         a forward pass (microseconds): no recompile, and positions, velocities
         and the command are untouched; the arm does not jump.
         """
-        for name, value in zip(PARAM_NAMES, (goal.x, goal.y), strict=True):
-            reason = check_goal_value(name, value)
-            if reason is not None:
-                raise ValueError(reason)
+        reason = check_goal(goal)
+        if reason is not None:
+            raise ValueError(reason)
+        goal = tuple(float(v) for v in goal)
         rotation = self._data.xmat[self._ids.box_body].reshape(3, 3)
         hole_offset = rotation @ self._hole_in_box
         self._model.body_pos[self._ids.box_body][:2] = table7_to_world(goal) - hole_offset[:2]
         mujoco.mj_forward(self._model, self._data)
-        self._goal = GoalPosition(float(goal.x), float(goal.y))
+        self._goal = goal
+
+    def prepare_values(self, values: Goal) -> PreparedGoal:
+        """Check a goal for a live swap: nothing to compile, unlike ParamEnv's."""
+        reason = check_goal(values)
+        if reason is not None:
+            raise ValueError(reason)
+        return PreparedGoal(tuple(float(v) for v in values))
+
+    def apply_prepared(self, prepared: PreparedGoal) -> None:
+        """Put a prepared goal into force at a step boundary, keeping the state."""
+        self.set_goal(prepared.values)
 
     def hole_position(self) -> np.ndarray:
         """Return the hole's position in the world (the channel's opening), m."""
@@ -460,18 +467,27 @@ class SawyerPegEnv:
         tip = self._data.site_xpos[self._ids.peg_tip]
         return float(np.linalg.norm(tip - self.goal_position()))
 
-    def observation(self) -> np.ndarray:
-        """Return the policy's observation (OBSERVATION_FIELDS)."""
+    def joint_positions(self) -> np.ndarray:
+        """Positions of the ENTRIES, in their order (what /joint_states carries)."""
         data, ids = self._data, self._ids
-        hand = data.site_xpos[ids.hand_site]
-        lead = data.mocap_pos[0] - data.xpos[ids.hand_body]
-        opening = np.linalg.norm(data.site_xpos[ids.fingertips[0]]
-                                 - data.site_xpos[ids.fingertips[1]])
         peg = data.qpos[ids.peg_qpos:ids.peg_qpos + 7]
         quat = peg[3:] if peg[3] >= 0 else -peg[3:]
-        return np.concatenate([hand, lead, [opening], peg[:3], quat,
-                               data.qpos[ids.arm_qpos], data.qvel[ids.arm_qvel],
-                               [self._previous_reward]]).astype(np.float64)
+        return np.concatenate([data.qpos[ids.joint_qpos], data.site_xpos[ids.hand_site],
+                               data.mocap_pos[0], peg[:3], quat[1:]])
+
+    def joint_velocities(self) -> np.ndarray:
+        """Velocities of the ENTRIES (0 for the commanded position, which has none)."""
+        data, ids = self._data, self._ids
+        mujoco.mj_objectVelocity(self._model, data, mujoco.mjtObj.mjOBJ_SITE, ids.hand_site,
+                                 self._velocity, 0)   # world frame: (angular, linear)
+        peg = data.qvel[ids.peg_qvel:ids.peg_qvel + 6]
+        return np.concatenate([data.qvel[ids.joint_qvel], self._velocity[3:], np.zeros(3),
+                               peg[:3], peg[3:]])
+
+    def observation(self) -> np.ndarray:
+        """Return the policy's observation: LAYOUT over the entries, the reward last."""
+        return self.layout.observation(self.joint_positions(), self.joint_velocities(),
+                                       self._previous_reward)
 
     def _measure_hole_in_box(self) -> np.ndarray:
         """Return the hole's position in the block's frame (the block moves, this does not)."""

@@ -8,7 +8,7 @@ action. It is driven by explicit calls, each given the time it happened at:
 * `deadline()` / `due(now)` / `on_deadline(now)`: the one moment the sim must
   act without a message (the realtime tick, the lockstep command timeout, or
   a lockstep step waiting for a swap's physics);
-* `request_swap(value)`, `reset()`, `configure(...)` for parameters and the
+* `request_swap(values)`, `reset()`, `configure(...)` for parameters and the
   reset service.
 
 Every state it enters goes to the injected `publish(PublishedState)`; the
@@ -27,14 +27,16 @@ late is counted and restarts the schedule from then; a tick at which the
 command answering the previous state has not arrived is counted unanswered
 (the controller's missed deadline). `configure` (a mode switch) restarts it.
 
-Swaps. A requested value is queued (sim_node.swaps: its physics is built by a
-worker thread) and takes effect at a step boundary, at most one value per
-boundary, so every accepted value is in force for at least one step, in
-order. realtime never waits for a build: a tick steps on the physics in force
-and the value takes effect at the first tick after its build. lockstep keeps
-its determinism: a step after a swap was requested waits for the build (the
-loop keeps serving messages and services meanwhile; `deadline` polls). A reset
-puts every queued value into force before the episode's first state.
+Swaps. A value is the family's value tuple (sim_node.swaps; `with_changes`
+makes one from the names a parameter set changes). A requested value is
+queued (its physics is built by a worker thread) and takes effect at a step
+boundary, at most one value per boundary, so every accepted value is in
+force for at least one step, in order. realtime never waits for a build: a
+tick steps on the physics in force and the value takes effect at the first
+tick after its build. lockstep keeps its determinism: a step after a swap was
+requested waits for the build (the loop keeps serving messages and services
+meanwhile; `deadline` polls). A reset puts every queued value into force
+before the episode's first state.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from typing import Callable
 import numpy as np
 
 from sim_node.env import ParamEnv, PreparedParam
+from sim_node.swaps import Values
 
 MODES = ('lockstep', 'realtime')
 # lockstep: how often a step waiting for a swap's build looks again (a build
@@ -65,7 +68,7 @@ class PublishedState:
     terminal: bool
     truncated: bool
     applied_action: np.ndarray | None   # what MuJoCo applied; None at an episode start
-    param_value: float        # the parameter value in force
+    param_values: Values      # the parameter values in force (the family's param_names)
     positions: np.ndarray
     velocities: np.ndarray
 
@@ -74,8 +77,8 @@ class PublishedState:
 class SwapApplied:
     """A parameter value put into force."""
 
-    old: float
-    new: float
+    old: Values
+    new: Values
     where: str                # 'episode 3 step 41', 'the start of episode 4'
 
 
@@ -140,20 +143,30 @@ class SimStepper:
             self.latest_action_time = now
 
     @property
-    def wanted_value(self) -> float:
-        """The value the sim will end up with: the last one queued, or the one in force."""
+    def wanted_values(self) -> Values:
+        """The values the sim will end up with: the last queued, or those in force."""
         waiting = self.swaps.values
-        return waiting[-1] if waiting else self.env.param_value
+        return waiting[-1] if waiting else tuple(self.env.param_values)
 
-    def swap_refusal(self, value: float) -> str | None:
-        """Why `value` cannot be queued now (the queue is full), or None."""
-        return None if float(value) == self.wanted_value else self.swaps.full_reason()
+    def with_changes(self, changes: dict[str, float]) -> Values:
+        """Return the wanted values with `changes` (name: value) made: what a set asks for."""
+        wanted = dict(zip(self.env.param_names, self.wanted_values, strict=True))
+        unknown = set(changes) - set(wanted)
+        if unknown:
+            raise KeyError(f'not a live parameter: {", ".join(sorted(unknown))}')
+        wanted.update({name: float(value) for name, value in changes.items()})
+        return tuple(wanted[name] for name in self.env.param_names)
 
-    def request_swap(self, value: float) -> bool:
-        """Queue `value` (checked by `swap_refusal`); False if the sim will have it anyway."""
-        if float(value) == self.wanted_value:
+    def swap_refusal(self, values: Values) -> str | None:
+        """Why `values` cannot be queued now (the queue is full), or None."""
+        return None if tuple(values) == self.wanted_values else self.swaps.full_reason()
+
+    def request_swap(self, values: Values) -> bool:
+        """Queue `values` (checked by `swap_refusal`); False if the sim will have them anyway."""
+        values = tuple(float(v) for v in values)
+        if values == self.wanted_values:
             return False
-        self.swaps.push(float(value))
+        self.swaps.push(values)
         return True
 
     # -- inputs ---------------------------------------------------------------------
@@ -269,11 +282,11 @@ class SimStepper:
         self._publish(0.0, False)
 
     def _apply(self, prepared: PreparedParam, where: str, outcome: StepOutcome) -> None:
-        old = self.env.param_value
+        old = tuple(self.env.param_values)
         self.env.apply_prepared(prepared)
         self.swaps.retire(prepared)   # the worker frees its compiled model, off the loop
         self.counters['swaps'] += 1
-        outcome.swaps.append(SwapApplied(old, prepared.value, where))
+        outcome.swaps.append(SwapApplied(old, tuple(prepared.values), where))
 
     def _publish(self, reward: float, truncated: bool, terminal: bool = False,
                  applied_action: np.ndarray | None = None) -> None:
@@ -282,7 +295,8 @@ class SimStepper:
         env = self.env
         self.publish(PublishedState(
             stamp, self.episode, env.step_count, float(reward), bool(terminal), bool(truncated),
-            applied_action, env.param_value, env.joint_positions(), env.joint_velocities()))
+            applied_action, tuple(env.param_values), env.joint_positions(),
+            env.joint_velocities()))
         self.awaited_ns = None if truncated or terminal else stamp
         self.awaited_since = self.clock()
 

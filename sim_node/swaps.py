@@ -9,6 +9,8 @@ every realtime tick around a swap was late (issue #17.3). Here a worker thread
 compiles the value at the head of the queue while the loop goes on (MuJoCo's
 compiler releases the GIL); the loop only takes a built head.
 
+A value is the family's value tuple (one number for most families, the
+goal's x and y for Sawyer-Peg-v0), in the family's `param_names` order.
 Every accepted value takes effect, in the order requested: the loop takes at
 most one value per step boundary, so each is in force for at least one step
 (a reset may put several into force before its first state). The queue holds
@@ -29,21 +31,30 @@ from sim_node.env import PreparedParam
 # for; a flood beyond that is refused, not queued into stale values.
 SWAP_CAPACITY = 8
 
+Values = tuple[float, ...]   # a family's parameter values, in its param_names order
+
+
+def format_values(values: Values) -> str:
+    """'0.4' for one value, '(0.6, 0.07)' for several: as a log line or an answer says it."""
+    if len(values) == 1:
+        return f'{values[0]:g}'
+    return '(' + ', '.join(f'{v:g}' for v in values) + ')'
+
 
 class SwapQueue:
     """Parameter values waiting to be put into force, the head's physics built by a worker.
 
-    `prepare(value) -> PreparedParam` runs on the worker thread and must not
-    touch the live env (`ParamEnv.prepare_param` does not). Every other method
+    `prepare(values) -> PreparedParam` runs on the worker thread and must not
+    touch the live env (`ParamEnv.prepare_values` does not). Every other method
     is for the loop's side; they may be called from any thread.
     """
 
-    def __init__(self, prepare: Callable[[float], PreparedParam],
+    def __init__(self, prepare: Callable[[Values], PreparedParam],
                  capacity: int = SWAP_CAPACITY):
         self.capacity = capacity
         self._prepare = prepare
         self._cond = threading.Condition()
-        self._values: deque[float] = deque()
+        self._values: deque[Values] = deque()
         self._built: PreparedParam | None = None  # the head's, once built
         self._error: BaseException | None = None
         self._generation = 0      # bumped by clear(): a build under way is then stale
@@ -53,7 +64,7 @@ class SwapQueue:
 
     # -- the loop's side --------------------------------------------------------
     @property
-    def values(self) -> tuple[float, ...]:
+    def values(self) -> tuple[Values, ...]:
         """The values waiting, head first."""
         with self._cond:
             return tuple(self._values)
@@ -67,14 +78,14 @@ class SwapQueue:
         with self._cond:
             if len(self._values) < self.capacity:
                 return None
-            waiting = ', '.join(f'{v:g}' for v in self._values)
+            waiting = ', '.join(format_values(v) for v in self._values)
         return (f'{self.capacity} values are already waiting to be put into force '
                 f'({waiting}); set it again once they are')
 
-    def push(self, value: float) -> None:
-        """Queue a value (the caller checked `full_reason`)."""
+    def push(self, values: Values) -> None:
+        """Queue a value tuple (the caller checked `full_reason`)."""
         with self._cond:
-            self._values.append(float(value))
+            self._values.append(tuple(float(v) for v in values))
             if self._worker is None:
                 # Started here, by a thread of the running node, the worker inherits its
                 # scheduler: SCHED_FIFO with thread_priority. Under the normal scheduler,
@@ -97,7 +108,7 @@ class SwapQueue:
                                 or self._error is not None or self._closed)
             return self._pop_built()
 
-    def clear(self) -> tuple[float, ...]:
+    def clear(self) -> tuple[Values, ...]:
         """Drop every waiting value (none will take effect); return them."""
         with self._cond:
             dropped = tuple(self._values)
@@ -154,12 +165,12 @@ class SwapQueue:
     def _has_work(self) -> bool:
         return self._closed or bool(self._retired) or self._next_job() is not None
 
-    def _next_job(self) -> tuple[int, float] | None:
+    def _next_job(self) -> tuple[int, Values] | None:
         if self._values and self._built is None and self._error is None:
             return self._generation, self._values[0]
         return None
 
-    def _build(self, generation: int, value: float) -> None:
+    def _build(self, generation: int, value: Values) -> None:
         try:
             prepared, error = self._prepare(value), None
         except Exception as failure:  # raised to the loop by the take that wanted it

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from sim_node import sawyer
-from sim_node.sawyer import (GoalPosition, meld_reward, MAX_HAND_STEP, OBS_DIM, SawyerPegEnv,
-                             SUCCESS_DISTANCE, table7_goals, TABLE7_X_RANGES, TABLE7_Y_RANGES)
+from sim_node.families import table7_goals, TABLE7_X_RANGES, TABLE7_Y_RANGES
+from sim_node.sawyer import (ENTRIES, HAND, LAYOUT, MAX_HAND_STEP, meld_reward, OBS_DIM,
+                             SawyerPegEnv, SUCCESS_DISTANCE)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -19,7 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope='module')
 def env():
     # One compile (~0.5 s) for the module; every test starts with its own reset.
-    return SawyerPegEnv(goal=table7_goals('train')[0])
+    return SawyerPegEnv(table7_goals('train')[0])
 
 
 def _scripted_insertion(env: SawyerPegEnv) -> list:
@@ -54,7 +55,7 @@ def test_reset_is_deterministic_per_seed(env):
 
     env.set_goal(table7_goals('train')[0])   # as the fresh env's
     a, b = rollout(env, 5), rollout(env, 5)
-    fresh = rollout(SawyerPegEnv(goal=table7_goals('train')[0], seed=None), 5)
+    fresh = rollout(SawyerPegEnv(table7_goals('train')[0], seed=None), 5)
     for x, y, z in zip(a, b, fresh, strict=True):
         np.testing.assert_array_equal(x, y)
         np.testing.assert_array_equal(x, z)
@@ -65,25 +66,29 @@ def test_reset_is_deterministic_per_seed(env):
 @pytest.mark.parametrize('axis', [0, 1, 2])
 @pytest.mark.parametrize('sign', [1.0, -1.0])
 def test_an_action_moves_the_hand_in_its_direction(env, axis, sign):
-    start = env.reset(0)[:3]
+    start = env.reset(0)[HAND]
     action = np.zeros(4)
     action[axis], action[3] = sign, 1.0
     for _ in range(3):
         result = env.step(action)
-    moved = result.observation[:3] - start
+    moved = result.observation[HAND] - start
     assert sign * moved[axis] > 0.04       # 3 steps of 0.02 m, less the weld's lag
     assert np.all(np.abs(np.delete(moved, axis)) < 0.01)
 
 
 def test_the_gripper_action_opens_and_closes(env):
-    closed = env.reset(0)[6]
+    fingers = [ENTRIES.index('r_close'), ENTRIES.index('l_close')]
+
+    def opening(observation):   # r_close closes at +q, l_close at -q
+        return observation[fingers[1]] - observation[fingers[0]]
+    closed = opening(env.reset(0))
     for _ in range(3):
-        opened = env.step([0, 0, 0, -1]).observation[6]
+        opened = opening(env.step([0, 0, 0, -1]).observation)
     assert opened > closed + 0.03
 
 
 def test_a_goal_swap_moves_the_hole_in_place_and_keeps_the_state(env):
-    env.set_goal(GoalPosition(0.45, -0.075))
+    env.set_goal((0.45, -0.075))
     env.reset(0)
     for _ in range(5):
         env.step([0.3, -0.2, -0.5, 1.0])
@@ -92,7 +97,7 @@ def test_a_goal_swap_moves_the_hole_in_place_and_keeps_the_state(env):
     model_id = id(env.model)
     env.set_param('goal_x', 0.60)
     env.set_param('goal_y', 0.078)
-    assert env.param_values == {'goal_x': 0.60, 'goal_y': 0.078}
+    assert env.param_values == (0.60, 0.078)
     # Table 7's x is the world's y, its y the world's -x.
     np.testing.assert_allclose(env.hole_position() - hole, [-0.153, 0.15, 0.0], atol=1e-6)
     np.testing.assert_allclose(env.hole_position()[:2], [-0.078, 0.60], atol=1e-6)
@@ -176,9 +181,9 @@ def test_table7_goals_are_fixed_and_in_the_tables_ranges():
     for split in ('train', 'interpolation'):
         goals = table7_goals(split)
         assert goals == table7_goals(split) and len(goals) == 8
-        clusters = [(next(i for i, (lo, hi) in enumerate(TABLE7_X_RANGES) if lo <= g.x <= hi),
-                     next(i for i, (lo, hi) in enumerate(TABLE7_Y_RANGES) if lo <= g.y <= hi))
-                    for g in goals]
+        clusters = [(next(i for i, (lo, hi) in enumerate(TABLE7_X_RANGES) if lo <= x <= hi),
+                     next(i for i, (lo, hi) in enumerate(TABLE7_Y_RANGES) if lo <= y <= hi))
+                    for x, y in goals]
         assert sorted(clusters) == sorted([(i, j) for i in (0, 1) for j in (0, 1)] * 2)
     assert set(table7_goals('train')).isdisjoint(table7_goals('interpolation'))
     assert table7_goals('extrapolation') == ()
@@ -193,3 +198,34 @@ def test_the_sawyer_module_stays_in_the_simulation_layer():
     roots |= {node.module.split('.')[0] for node in ast.walk(tree)
               if isinstance(node, ast.ImportFrom) and node.module}
     assert roots.isdisjoint({'rclpy', 'torch', 'zeus_msgs', 'zeus_ros', 'metaworld', 'gymnasium'})
+
+
+def test_a_joint_state_of_the_entries_gives_the_controllers_the_same_observation(env):
+    """What sim_node publishes (names, positions, velocities, reward) is the observation."""
+    env.reset(3)
+    rng = np.random.default_rng(2)
+    for _ in range(6):
+        result = env.step(rng.uniform(-1, 1, 4))
+    positions, velocities = env.joint_positions(), env.joint_velocities()
+    assert len(positions) == len(velocities) == len(env.joint_names) == len(ENTRIES)
+    shuffled = rng.permutation(len(ENTRIES))   # a JointState may list them in any order
+    rebuilt = LAYOUT.observation_from_joint_state(
+        [ENTRIES[i] for i in shuffled], positions[shuffled], velocities[shuffled],
+        result.reward)
+    np.testing.assert_array_equal(rebuilt, result.observation)
+    # The peg's orientation: the vector part of a unit quaternion with w >= 0.
+    quat_xyz = positions[ENTRIES.index('peg_qx'):ENTRIES.index('peg_qz') + 1]
+    assert np.linalg.norm(quat_xyz) <= 1.0
+    # The command has no velocity of its own: it is not in the observation.
+    assert OBS_DIM == 2 * len(ENTRIES) - 3 + 1
+
+
+def test_a_prepared_goal_applies_as_set_goal_and_a_bad_one_is_refused(env):
+    env.reset(0)
+    prepared = env.prepare_values((0.6, 0.07))
+    assert env.param_values != (0.6, 0.07)     # preparing changes nothing
+    env.apply_prepared(prepared)
+    assert env.param_values == (0.6, 0.07)
+    for bad in ((0.6,), (0.9, 0.0), (0.6, math.nan), 'xy'):
+        with pytest.raises(ValueError):
+            env.prepare_values(bad)

@@ -49,7 +49,7 @@ class GatedSwaps:
 
     def finish(self, count=1):
         for value in self.waiting[len(self.built):len(self.built) + count]:
-            self.built.append(self.env.prepare_param(value))
+            self.built.append(self.env.prepare_values(value))
 
     def take_ready(self):
         if not self.built:
@@ -236,21 +236,21 @@ def test_mode_switches_restart_the_schedule_and_lockstep_waits_again(rig):
 # -- swaps at step boundaries -------------------------------------------------------
 def test_realtime_never_waits_for_a_build_and_swaps_at_the_first_tick_after_it(rig):
     stepper, published, clock, swaps = realtime(rig)
-    assert stepper.request_swap(0.4)
+    assert stepper.request_swap((0.4,))
     for _ in range(3):                           # building: the ticks go on at 1.0
         outcome = stepper.on_deadline(stepper.deadline())
         assert outcome.stepped and not outcome.swaps
-    assert [s.param_value for s in published[-3:]] == [1.0] * 3
+    assert [s.param_values[0] for s in published[-3:]] == [1.0] * 3
     swaps.finish()
     outcome = stepper.on_deadline(stepper.deadline())
-    assert [(s.old, s.new) for s in outcome.swaps] == [(1.0, 0.4)]
+    assert [(s.old, s.new) for s in outcome.swaps] == [((1.0,), (0.4,))]
     assert outcome.swaps[0].where == 'episode 0 step 3'
-    assert published[-1].param_value == 0.4 and len(swaps.retired) == 1
+    assert published[-1].param_values[0] == 0.4 and len(swaps.retired) == 1
 
 
 def test_lockstep_holds_a_step_until_the_swap_is_built(rig):
     stepper, published, clock, swaps = rig
-    stepper.request_swap(0.4)
+    stepper.request_swap((0.4,))
     stamp = published[-1].stamp_ns
     outcome = answer(stepper, published, clock, np.full(6, 0.3))
     assert outcome.waiting_for_swap and not outcome.stepped and len(published) == 1
@@ -262,8 +262,8 @@ def test_lockstep_holds_a_step_until_the_swap_is_built(rig):
     swaps.finish()
     clock.now += SWAP_POLL_S
     outcome = stepper.on_deadline(clock.now)
-    assert outcome.stepped and [s.new for s in outcome.swaps] == [0.4]
-    assert published[-1].param_value == 0.4 and published[-1].step == 1
+    assert outcome.stepped and [s.new for s in outcome.swaps] == [(0.4,)]
+    assert published[-1].param_values[0] == 0.4 and published[-1].step == 1
     np.testing.assert_array_equal(published[-1].applied_action, np.full(6, 0.3))
     assert stepper.counters['timeouts'] == 0
 
@@ -271,28 +271,28 @@ def test_lockstep_holds_a_step_until_the_swap_is_built(rig):
 def test_queued_values_take_effect_one_per_step_in_order(rig):
     stepper, published, clock, swaps = rig
     for value in (0.4, 1.2, 0.8):
-        assert stepper.swap_refusal(value) is None and stepper.request_swap(value)
-    assert stepper.swap_refusal(2.0) == 'full'            # capacity 3
-    assert stepper.swap_refusal(0.8) is None               # what it will have anyway
-    assert not stepper.request_swap(0.8)
+        assert stepper.swap_refusal((value,)) is None and stepper.request_swap((value,))
+    assert stepper.swap_refusal((2.0,)) == 'full'            # capacity 3
+    assert stepper.swap_refusal((0.8,)) is None               # what it will have anyway
+    assert not stepper.request_swap((0.8,))
     swaps.finish(3)
     for _ in range(4):
         answer(stepper, published, clock, np.zeros(6))
-    assert [s.param_value for s in published] == [1.0, 0.4, 1.2, 0.8, 0.8]
+    assert [s.param_values[0] for s in published] == [1.0, 0.4, 1.2, 0.8, 0.8]
     assert stepper.counters['swaps'] == 3
 
 
 def test_a_reset_puts_every_queued_value_into_force_before_its_first_state(rig):
     stepper, published, clock, swaps = rig
     answer(stepper, published, clock, np.zeros(6))
-    stepper.request_swap(0.4)
-    stepper.request_swap(1.5)
+    stepper.request_swap((0.4,))
+    stepper.request_swap((1.5,))
     stepper.pending_seed = 9
     outcome = stepper.reset()                     # waits for the builds
     assert [(s.new, s.where) for s in outcome.swaps] == [
-        (0.4, 'the start of episode 1'), (1.5, 'the start of episode 1')]
+        ((0.4,), 'the start of episode 1'), ((1.5,), 'the start of episode 1')]
     first = published[-1]
-    assert (first.episode, first.step, first.param_value) == (1, 0, 1.5)
+    assert (first.episode, first.step, first.param_values[0]) == (1, 0, 1.5)
     assert stepper.stream_seed == 9 and stepper.pending_seed is None
     twin = ParamEnv(FAMILY, 1.5, seed=0)
     twin.reset(seed=9)
@@ -301,11 +301,11 @@ def test_a_reset_puts_every_queued_value_into_force_before_its_first_state(rig):
 
 def test_switching_to_realtime_hands_a_held_command_to_the_ticks(rig):
     stepper, published, clock, _ = rig
-    stepper.request_swap(0.4)
+    stepper.request_swap((0.4,))
     answer(stepper, published, clock, np.full(6, 0.6))     # held for the build
     stepper.configure('realtime', TIMEOUT, 1.0, clock.now)
     stepper.on_deadline(stepper.deadline())                 # still building: old physics
-    assert published[-1].param_value == 1.0
+    assert published[-1].param_values[0] == 1.0
     np.testing.assert_array_equal(published[-1].applied_action, np.full(6, 0.6))
 
 
@@ -323,13 +323,13 @@ def test_a_swap_through_the_worker_equals_set_param_in_process():
         expected.append(twin.joint_positions())
     env = ParamEnv(FAMILY, 1.0, seed=2)
     clock, published = FakeClock(), []
-    swaps = SwapQueue(env.prepare_param)
+    swaps = SwapQueue(env.prepare_values)
     try:
         stepper = SimStepper(env, published.append, swaps, clock=clock, seed=2)
         stepper.start()
         for i, action in enumerate(sequence):
             if i == 10:
-                stepper.request_swap(0.4)
+                stepper.request_swap((0.4,))
             outcome = answer(stepper, published, clock, action)
             while outcome.waiting_for_swap:            # lockstep holds the step for the build
                 threading.Event().wait(0.005)
@@ -337,7 +337,7 @@ def test_a_swap_through_the_worker_equals_set_param_in_process():
     finally:
         swaps.close()
     np.testing.assert_array_equal([s.positions for s in published[1:]], expected)
-    assert [s.param_value for s in published[1:]] == [1.0] * 10 + [0.4] * 20
+    assert [s.param_values[0] for s in published[1:]] == [1.0] * 10 + [0.4] * 20
 
 
 def test_the_swap_queue_builds_on_its_worker_in_order():
@@ -346,18 +346,18 @@ def test_the_swap_queue_builds_on_its_worker_in_order():
 
     def prepare(value):
         built_on.append(threading.get_ident())
-        return env.prepare_param(value)
+        return env.prepare_values(value)
     swaps = SwapQueue(prepare, capacity=2)
     try:
         assert swaps.take_ready() is None and swaps.take_waiting() is None  # nothing queued
-        swaps.push(0.4)
-        swaps.push(1.2)
+        swaps.push((0.4,))
+        swaps.push((1.2,))
         assert 'already waiting' in swaps.full_reason() and '0.4, 1.2' in swaps.full_reason()
         assert [swaps.take_waiting().value, swaps.take_waiting().value] == [0.4, 1.2]
         assert len(set(built_on)) == 1 and threading.get_ident() not in built_on
-        swaps.push(0.5)
-        swaps.push(0.6)
-        assert swaps.clear() == (0.5, 0.6) and len(swaps) == 0
+        swaps.push((0.5,))
+        swaps.push((0.6,))
+        assert swaps.clear() == ((0.5,), (0.6,)) and len(swaps) == 0
         assert swaps.take_waiting() is None
     finally:
         swaps.close()
@@ -368,8 +368,8 @@ def test_a_value_that_cannot_be_built_raises_to_the_loop_and_leaves_the_queue():
         raise RuntimeError(f'cannot compile {value}')
     swaps = SwapQueue(prepare)
     try:
-        swaps.push(0.4)
-        with pytest.raises(RuntimeError, match='cannot compile 0.4'):
+        swaps.push((0.4,))
+        with pytest.raises(RuntimeError, match=r'cannot compile \(0.4,\)'):
             swaps.take_waiting()
         assert len(swaps) == 0
     finally:

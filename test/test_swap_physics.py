@@ -127,11 +127,11 @@ def test_memory_stays_flat_over_300_swaps():
     env = ParamEnv('walker-walk-v0', 0.7, seed=0)
     env.reset(seed=0)
     physics = env.physics
-    swaps = SwapQueue(env.prepare_param)
+    swaps = SwapQueue(env.prepare_values)
     values = [0.4, 1.2, 0.8, 1.7, 0.5, 2.0]
 
     def swap_through_the_worker(i):
-        swaps.push(values[i % len(values)])
+        swaps.push((values[i % len(values)],))
         env.apply_prepared(swaps.take_waiting())
         env.step(np.zeros(env.action_dim))
     try:

@@ -24,13 +24,15 @@ class SwapCase:
     before: float
     after: float
     # Mean estimate over the k+1..k+20 steps after the swap vs the 100 steps
-    # before it: at least this much of a move toward the new value.
+    # before it: at least this much of a move toward the new value. (The
+    # shipped cheetah-run-v0 weights move 0.35 of the 0.9 change here; the
+    # short run shipped before moved 0.007-0.1, under load too little.)
     min_early_move: float
 
 
 CASES = {
     'cheetah-torso-length': SwapCase(REPO / 'weights' / 'cheetah-run-v0-zeus', 'cheetah-run-v0',
-                                     'torso_length', 1.5, 0.6, min_early_move=0.05),
+                                     'torso_length', 1.5, 0.6, min_early_move=0.15),
 }
 
 

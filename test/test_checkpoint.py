@@ -288,6 +288,8 @@ def _put(path, value):
     (_put(['context', 'row_dim'], 3), 'context.row_dim: must be 2'),
     (_put(['action_layout', 'actuator_names'], ['a']), 'actuator_names: has 1 names'),
     (_put(['config', 'context_length'], 'x'), 'config'),
+    (_put(['obs_layout', 'velocity_encoding'], ['raw']), 'velocity_encoding: has 1 entries'),
+    (_put(['obs_layout', 'velocity_encoding'], 'raw'), 'velocity_encoding: must be a list'),
 ])
 def test_malformed_metadata_refused_naming_the_field(saved, tmp_path, edit, field):
     _, _, path = saved

@@ -58,7 +58,8 @@ def env_info(env: ParamEnv) -> dict:
             'position_encoding': env.layout.position_encoding,
             'actuator_names': env.actuator_names, 'train_values': env.spec.train,
             'control_timestep': env.control_timestep,
-            'reward_in_observation': env.layout.reward_in_observation}
+            'reward_in_observation': env.layout.reward_in_observation,
+            'velocity_encoding': env.layout.velocity_encoding}
 
 
 def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',

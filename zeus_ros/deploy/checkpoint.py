@@ -143,7 +143,8 @@ def build_metadata(agent, env_info: dict, counters: dict, run: dict | None = Non
                        'joint_names': list(env_info['joint_names']),
                        'position_encoding': list(env_info['position_encoding']),
                        'reward_in_observation': bool(env_info.get('reward_in_observation',
-                                                                  False))},
+                                                                  False)),
+                       **_velocity_encoding(env_info)},
         'action_layout': {'action_dim': agent.action_dim,
                           'actuator_names': list(env_info['actuator_names']),
                           'range': [-1.0, 1.0]},
@@ -238,6 +239,12 @@ def load_metadata(path, expected_family: str | None = None, obs_dim: int | None 
         if want is not None and int(want) != int(have):
             raise CheckpointError(f'{label} mismatch: checkpoint has {have}, expected {want}')
     return meta
+
+
+def _velocity_encoding(env_info: dict) -> dict:
+    """Return the layout's velocity encoding, written only when some velocity is dropped."""
+    encoding = env_info.get('velocity_encoding')
+    return {} if encoding is None else {'velocity_encoding': list(encoding)}
 
 
 def _verified_tensors(path: Path, meta: dict, name: str) -> dict:

@@ -29,6 +29,8 @@ class ObsLayoutMeta:
     position_encoding: tuple[str, ...]
     # The reward into the state is the observation's last entry (absent: false).
     reward_in_observation: bool = False
+    # Per joint entry, 'raw' or 'drop' (its velocity is not observed); absent: all kept.
+    velocity_encoding: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -182,6 +184,11 @@ def _check_consistency(meta: CheckpointMetadata) -> None:
          f'has {len(act.actuator_names)} names for action_dim {act.action_dim}'),
         (len(obs.position_encoding) == len(obs.joint_names), 'obs_layout.position_encoding',
          f'has {len(obs.position_encoding)} entries for {len(obs.joint_names)} joints'),
+        (obs.velocity_encoding is None or len(obs.velocity_encoding) == len(obs.joint_names),
+         'obs_layout.velocity_encoding',
+         f'has {len(obs.velocity_encoding or ())} entries for {len(obs.joint_names)} joints'),
+        (set(obs.velocity_encoding or ()) <= {'raw', 'drop'}, 'obs_layout.velocity_encoding',
+         f"entries must be 'raw' or 'drop', got {sorted(set(obs.velocity_encoding or ()))}"),
         (ctx.k >= 1, 'context.k', f'must be >= 1, got {ctx.k}'),
         (ctx.context_dim >= 0, 'context.context_dim', f'must be >= 0, got {ctx.context_dim}'),
         (ctx.row_dim == 2 * obs.obs_dim + act.action_dim + 1, 'context.row_dim',

@@ -57,8 +57,10 @@ class BadMessage(ValueError):
 def layout_from_metadata(metadata: dict) -> ObservationLayout:
     """Build the checkpoint's observation layout (joint names, encodings, reward entry)."""
     obs = metadata['obs_layout']
+    velocities = obs.get('velocity_encoding')
     layout = ObservationLayout(tuple(obs['joint_names']), tuple(obs['position_encoding']),
-                               bool(obs.get('reward_in_observation', False)))
+                               bool(obs.get('reward_in_observation', False)),
+                               None if velocities is None else tuple(velocities))
     if layout.size != int(obs['obs_dim']):
         raise ValueError(f'checkpoint layout gives {layout.size} observations, '
                          f'metadata says {obs["obs_dim"]}')

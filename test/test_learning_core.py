@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from zeus_ros.core.agent import Agent
+from zeus_ros.core.agent import Agent, param_normaliser
 from zeus_ros.train import family_config as make_config
 from zeus_ros.core.methods import ParamScale
 from zeus_ros.core.methods.zeus import w2_diag_gaussians
@@ -347,8 +347,9 @@ def test_sac_has_no_context_and_its_critic_trains_phi():
 def test_oracle_context_is_the_normalised_true_parameter():
     agent, b = make_agent('oracle'), make_batch()
     c = agent.method.encode(b.ctx_rows, b.ctx_mask, b.param)
-    assert torch.allclose(c[:, 0], (b.param - 0.8) / 0.55)
-    assert torch.allclose(agent.method.decode(c), c[:, 0])
+    assert b.param.shape == (b.obs.shape[0], 1) and c.shape == b.param.shape
+    assert torch.allclose(c, (b.param - 0.8) / 0.55)
+    assert torch.allclose(agent.method.decode(c), c)
     with pytest.raises(ValueError):
         agent.method.encode(b.ctx_rows, b.ctx_mask, None)
     # different true values, same observation -> different actions (the policy sees it)
@@ -432,7 +433,7 @@ def test_up_osi_trains_on_the_true_parameter_and_deploys_its_estimate():
     agent, b = make_agent('up-osi', osi_warmup_updates=1), make_batch()
     m = agent.method
     c = m.encode(b.ctx_rows, b.ctx_mask, b.param)
-    assert torch.allclose(c[:, 0], (b.param - 0.8) / 0.55)   # UP sees the truth in training
+    assert torch.allclose(c, (b.param - 0.8) / 0.55)   # UP sees the truth in training
     zero_all(agent)
     agent.critic_loss(b)[0].backward()
     assert no_grad(m.psi)                                      # no policy gradient into OSI
@@ -560,3 +561,39 @@ def test_encode_pair_is_the_two_windows_latents_from_one_pass(method, extra):
     assert torch.allclose(c, want_c, atol=1e-5) and torch.allclose(cn, want_cn, atol=1e-5)
     assert not cn.requires_grad
     assert c.requires_grad == (method in ('zeus', 'zeus-id', 'cadm', 'hyperdynamics'))
+
+
+@pytest.mark.parametrize('method', ['oracle', 'zeus', 'zeus-id', 'up-osi'])
+def test_two_parameters_travel_as_columns_through_every_parameter_user(method):
+    """A family with two parameters (Sawyer-Peg's goal x, y): contexts, decoders and losses."""
+    scale = param_normaliser([(0.44, -0.08), (0.61, 0.08), (0.5, 0.0)])
+    assert scale.offset == (0.44, -0.08) and scale.scale == pytest.approx((0.17, 0.16))
+    torch.manual_seed(0)
+    agent = Agent(tiny_config(method), OBS, ACT, scale)
+    buf = ReplayBuffer(64, OBS, ACT, K, ROW, seed=0, param_dim=2)
+    rng = np.random.default_rng(0)
+    for t in range(40):
+        goal = ((0.44, -0.08), (0.61, 0.08))[t % 2]
+        buf.add(rng.normal(size=OBS), rng.uniform(-1, 1, ACT), rng.normal(),
+                rng.normal(size=OBS), False, t % 2, goal, t >= 2)
+    b = buf.sample(16)
+    assert b.param.shape == (16, 2)
+    metrics = agent.update(b)
+    assert all(torch.isfinite(v).all() for v in metrics.values())
+    latent = agent.method.deployed_context(b.ctx_rows, b.ctx_mask, b.param)
+    assert agent.method.decode(latent).shape == (16, 2)
+    if agent.method.needs_true_param or method == 'up-osi':
+        assert agent.method.context_dim == 2
+    rows, mask = ContextWindow(K, OBS, ACT).arrays()
+    assert agent.act(np.ones(OBS), rows, mask, (0.5, 0.0), deterministic=True).shape == (ACT,)
+
+
+def test_a_replay_saved_with_one_dimensional_parameters_loads_as_one_column():
+    """Buffers saved before parameters were vectors (param [n]) resume unchanged."""
+    buf = ReplayBuffer(64, OBS, ACT, K, ROW, seed=0)
+    fill_replay(buf, steps=10, tasks=2)
+    arrays = buf.state_arrays()
+    arrays['replay.param'] = arrays['replay.param'][:, 0]   # the old layout
+    restored = ReplayBuffer(64, OBS, ACT, K, ROW, seed=0)
+    restored.load_state_arrays(arrays)
+    np.testing.assert_array_equal(restored.param, buf.param)

@@ -44,9 +44,14 @@ CORE_OPTIMIZERS = ('critic_opt', 'actor_opt', 'alpha_opt')
 
 
 def param_normaliser(train_values) -> ParamScale:
-    """Min-max normalisation mapping the train values onto [0, 1]."""
-    lo, hi = float(min(train_values)), float(max(train_values))
-    return ParamScale(lo, (hi - lo) if hi > lo else 1.0)
+    """Min-max normalisation mapping the train values onto [0, 1], per parameter.
+
+    `train_values`: numbers (a one-parameter family) or value tuples.
+    """
+    values = np.asarray(train_values, dtype=np.float64)
+    values = values.reshape(len(values), -1)
+    lo, hi = values.min(axis=0), values.max(axis=0)
+    return ParamScale(tuple(lo), tuple(np.where(hi > lo, hi - lo, 1.0)))
 
 
 def build_method(cfg: ZeusConfig, obs_dim: int, action_dim: int, param: ParamScale,
@@ -133,8 +138,7 @@ class Agent:
         single = obs_t.dim() == 1
         rows = torch.as_tensor(np.asarray(window_rows, dtype=np.float32))
         mask = torch.as_tensor(np.asarray(window_mask, dtype=bool))
-        p = None if param is None else torch.as_tensor(
-            np.asarray(param, dtype=np.float32).reshape(-1))
+        p = None if param is None else self.param.as_rows(np.asarray(param, dtype=np.float32))
         if single:
             obs_t, rows, mask = obs_t[None], rows[None], mask[None]
         x = torch.cat([self.phi(obs_t), self.method.acting_context(rows, mask, p)], dim=-1)

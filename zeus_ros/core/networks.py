@@ -193,9 +193,10 @@ class ParamDecoder(nn.Module):
     never shape psi; it is a probe and a deployment-time estimate only.
     """
 
-    def __init__(self, context_dim: int, hidden: int):
+    def __init__(self, context_dim: int, hidden: int, param_dim: int = 1):
         super().__init__()
-        self.net = mlp(context_dim, hidden, 1, 1)
+        self.net = mlp(context_dim, hidden, param_dim, 1)
 
     def forward(self, c: torch.Tensor) -> torch.Tensor:
-        return run_mlp(self.net, c).squeeze(-1)
+        """Normalised estimates [B, param_dim]."""
+        return run_mlp(self.net, c)

@@ -44,7 +44,7 @@ class Batch:
     next_ctx_rows: torch.Tensor
     next_ctx_mask: torch.Tensor
     task: torch.Tensor
-    param: torch.Tensor
+    param: torch.Tensor         # [B, param_dim]: the true values in force
     chain_rows: torch.Tensor    # [B, k + 1, D]: transition t, t-1, ... t-k (zeros where none)
     chain_mask: torch.Tensor    # [B, k + 1]: which of them exist
 
@@ -64,7 +64,7 @@ class ReplayBuffer:
     """Fixed-capacity FIFO buffer; `add` overwrites the oldest when full."""
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, k: int, row_dim: int,
-                 seed: int = 0):
+                 seed: int = 0, param_dim: int = 1):
         self.capacity = c = int(capacity)
         self.k = int(k)
         self.row_dim = int(row_dim)
@@ -74,7 +74,7 @@ class ReplayBuffer:
         self.next_obs = np.zeros((c, obs_dim), np.float32)
         self.not_done = np.zeros((c,), np.float32)
         self.task = np.zeros((c,), np.int64)
-        self.param = np.zeros((c,), np.float32)
+        self.param = np.zeros((c, param_dim), np.float32)   # the true values, per parameter
         self.serial = np.full((c,), -1, np.int64)       # add count of the slot's transition
         self.prev_serial = np.full((c,), -1, np.int64)  # its predecessor's, -1 = none
         self.added = 0
@@ -85,9 +85,13 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs, action, reward, next_obs, done, task: int, param: float,
+    def add(self, obs, action, reward, next_obs, done, task: int, param,
             continues: bool) -> None:
-        """Store one transition; `continues`: the task's previous add is its predecessor."""
+        """Store one transition.
+
+        `param`: the true value(s) in force (a number, or a tuple for a family
+        with several); `continues`: the task's previous add is its predecessor.
+        """
         serial = self.added
         i = serial % self.capacity
         self.obs[i] = obs
@@ -169,6 +173,8 @@ class ReplayBuffer:
         if capacity != self.capacity:
             raise ValueError(f'replay capacity {capacity} in checkpoint, {self.capacity} now')
         for name in ARRAY_NAMES:
-            getattr(self, name)[:size] = arrays[f'replay.{name}']
+            target = getattr(self, name)
+            # Buffers saved before parameters were vectors hold param as [n]: one column.
+            target[:size] = arrays[f'replay.{name}'].reshape((size, *target.shape[1:]))
         self.added, self.size = added, size
         self._last_of_task = {}

@@ -155,7 +155,7 @@ def build_metadata(agent, env_info: dict, counters: dict, run: dict | None = Non
                     'method': cfg.method,
                     'needs_true_param': agent.method.needs_true_param,
                     'empty_window': 'zero latent'},
-        'param_normalisation': {'offset': agent.param.offset, 'scale': agent.param.scale,
+        'param_normalisation': {**_one_parameter_scale(agent.param),
                                 'formula': '(value - offset) / scale',
                                 'train_values': list(env_info['train_values'])},
         'control_timestep': env_info.get('control_timestep'),
@@ -239,6 +239,14 @@ def load_metadata(path, expected_family: str | None = None, obs_dim: int | None 
         if want is not None and int(want) != int(have):
             raise CheckpointError(f'{label} mismatch: checkpoint has {have}, expected {want}')
     return meta
+
+
+def _one_parameter_scale(param) -> dict:
+    """Return offset and scale as metadata.json holds them: numbers (one parameter so far)."""
+    if param.param_dim != 1:
+        raise CheckpointError(f'checkpoints hold one parameter so far; this agent has '
+                              f'{param.param_dim} (multi-parameter families: issue #19)')
+    return {'offset': param.offset[0], 'scale': param.scale[0]}
 
 
 def _velocity_encoding(env_info: dict) -> dict:

@@ -122,4 +122,4 @@ class InferenceModel:
         normalised = self.method.decode(torch.from_numpy(latent))
         if normalised is None:
             return math.nan
-        return float(normalised[0]) * self.param_scale + self.param_offset
+        return float(normalised[0, 0]) * self.param_scale + self.param_offset

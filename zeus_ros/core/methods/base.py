@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar, TYPE_CHECKING
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -34,18 +35,41 @@ class Dims:
 
 @dataclass(frozen=True)
 class ParamScale:
-    """Min-max normalisation of the physical parameter over the train values."""
+    """Min-max normalisation of the physical parameters over the train values, per parameter.
 
-    offset: float = 0.0
-    scale: float = 1.0
+    One entry per parameter of the family (one for most; goal_x and goal_y
+    for Sawyer-Peg-v0). Parameters travel as [B, param_dim] tensors.
+    """
 
-    def normalise(self, value):
-        """Physical value -> normalised (train values span [0, 1])."""
-        return (value - self.offset) / self.scale
+    offset: tuple[float, ...] = (0.0,)
+    scale: tuple[float, ...] = (1.0,)
+
+    def __post_init__(self):
+        # Accept plain numbers for a one-parameter family.
+        for name in ('offset', 'scale'):
+            value = getattr(self, name)
+            values = tuple(float(v) for v in (value if isinstance(value, tuple | list)
+                                              else (value,)))
+            object.__setattr__(self, name, values)
+        if len(self.offset) != len(self.scale):
+            raise ValueError(f'{len(self.offset)} offsets for {len(self.scale)} scales')
+
+    @property
+    def param_dim(self) -> int:
+        """How many parameters the family varies."""
+        return len(self.offset)
+
+    def as_rows(self, value) -> torch.Tensor:
+        """Parameters as a float32 [B, param_dim] tensor (from [B], [B, P] or one row)."""
+        return torch.as_tensor(value, dtype=torch.float32).reshape(-1, self.param_dim)
+
+    def normalise(self, value: torch.Tensor) -> torch.Tensor:
+        """Physical values [B, P] -> normalised (train values span [0, 1] per parameter)."""
+        return (value - value.new_tensor(self.offset)) / value.new_tensor(self.scale)
 
     def physical(self, normalised):
-        """Normalised -> physical value."""
-        return normalised * self.scale + self.offset
+        """Normalised values [..., P] (numpy) -> physical values."""
+        return normalised * np.asarray(self.scale) + np.asarray(self.offset)
 
 
 def adam(params, lr: float, betas=(0.9, 0.999)) -> torch.optim.Adam:
@@ -148,5 +172,5 @@ class ContextMethod:
         return {}
 
     def decode(self, latent: torch.Tensor) -> torch.Tensor | None:
-        """Normalised parameter estimate [B] from latents, or None without a decoder."""
+        """Normalised parameter estimates [B, param_dim] from latents, or None (no decoder)."""
         return None

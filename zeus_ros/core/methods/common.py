@@ -123,7 +123,7 @@ class EncoderMethod(ContextMethod):
         super().__init__(cfg, dims, param, training)
         self.psi = StandardisedContextEncoder(dims.obs_dim, dims.row_dim, cfg,
                                               self.encoder_dim)
-        self.decoder = ParamDecoder(cfg.context_dim, cfg.decoder_hidden) \
+        self.decoder = ParamDecoder(cfg.context_dim, cfg.decoder_hidden, param.param_dim) \
             if self.has_decoder else None
         if not training:
             return

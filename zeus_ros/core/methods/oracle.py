@@ -8,7 +8,6 @@ evaluator, and on ROS the parameter the sim publishes in StepInfo).
 
 from __future__ import annotations
 
-import torch
 
 from zeus_ros.core.methods.base import ContextMethod
 
@@ -21,13 +20,12 @@ class OracleMethod(ContextMethod):
 
     @property
     def context_dim(self) -> int:
-        return 1
+        return self.param.param_dim
 
     def encode(self, rows, mask, param):
         if param is None:
             raise ValueError('the oracle method needs the true parameter')
-        param = torch.as_tensor(param, dtype=torch.float32).reshape(-1, 1)
-        return self.param.normalise(param)
+        return self.param.normalise(self.param.as_rows(param))
 
     def decode(self, latent):
-        return latent[..., 0]
+        return latent

@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import torch
 import torch.nn.functional as F
 
 from zeus_ros.core.methods.base import ContextMethod
@@ -35,7 +34,7 @@ class UpOsiMethod(EncoderMethod):
 
     @property
     def encoder_dim(self) -> int:
-        return 1
+        return self.param.param_dim
 
     @property
     def critic_trains_context(self) -> bool:
@@ -44,7 +43,7 @@ class UpOsiMethod(EncoderMethod):
     def encode(self, rows, mask, param):
         if param is None:
             raise ValueError('UP is trained on the true parameter: pass it')
-        return self.param.normalise(torch.as_tensor(param, dtype=torch.float32).reshape(-1, 1))
+        return self.param.normalise(self.param.as_rows(param))
 
     # In training the latent is the true parameter, not psi's: no codes to share.
     encode_pair = ContextMethod.encode_pair
@@ -58,11 +57,11 @@ class UpOsiMethod(EncoderMethod):
         return self.psi(rows, mask)
 
     def decode(self, latent):
-        return latent[..., 0]
+        return latent
 
     def model_loss(self, b):
         estimate = self.psi(b.ctx_rows, b.ctx_mask)
-        loss = F.mse_loss(estimate[:, 0], self.param.normalise(b.param))
+        loss = F.mse_loss(estimate, self.param.normalise(b.param))
         return loss, estimate, {'osi_loss': loss.detach()}
 
     def update(self, batch, z, step):

@@ -38,7 +38,7 @@ class ZeusMethod(ContextMethod):
         super().__init__(cfg, dims, param, training)
         self.psi = ContextEncoder(dims.row_dim, cfg.context_dim, cfg.context_hidden,
                                   cfg.context_layers, cfg.aggregation)
-        self.decoder = ParamDecoder(cfg.context_dim, cfg.decoder_hidden)
+        self.decoder = ParamDecoder(cfg.context_dim, cfg.decoder_hidden, param.param_dim)
         if not training:
             return
         self.T = GaussianModel(cfg.feature_dim, dims.action_dim, cfg.context_dim,

@@ -362,6 +362,12 @@ class ParamEnv:
                              f'{self.spec.domain} model: it cannot be swapped in place')
         return PreparedParam(value, model)
 
+    def set_values(self, values: tuple[float]) -> None:
+        """`set_param` for a value tuple (what the evaluator calls for any family)."""
+        if len(values) != 1:
+            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
+        self.set_param(values[0])
+
     def prepare_values(self, values: tuple[float]) -> PreparedParam:
         """`prepare_param` for a value tuple (the sim node's interface to every family)."""
         if len(values) != 1:
@@ -415,18 +421,22 @@ def _copy_state(source, physics) -> None:
     physics.forward()
 
 
-def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | None = 0):
+def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | None = 0,
+             **options):
     """Return the env of any family the sim node runs: a `ParamEnv`, or Sawyer-Peg-v0's own.
 
     Both answer what the sim node and its stepper use: reset, step,
     param_names / param_values, prepare_values / apply_prepared (a live swap),
     joint_names / joint_positions / joint_velocities (the JointState),
-    actuator_names, control_timestep, step_count.
+    actuator_names, control_timestep, step_count. `options`: `episode_steps`,
+    `reward_in_obs` (Sawyer-Peg-v0 always observes the reward).
     """
     spec = get_sim_family(family)
     if spec.name in GOAL_FAMILIES:
         from sim_node.sawyer import SawyerPegEnv   # sawyer imports this module
-        return SawyerPegEnv(values, seed=seed)
+        if not options.pop('reward_in_obs', True):
+            raise ValueError(f'{family} observes the reward: reward_in_obs cannot be off')
+        return SawyerPegEnv(values, seed=seed, **options)
     if values is not None and len(values) != 1:
         raise ValueError(f'{family} has one parameter, got {len(values)} values')
-    return ParamEnv(family, None if values is None else values[0], seed=seed)
+    return ParamEnv(family, None if values is None else values[0], seed=seed, **options)

@@ -283,6 +283,8 @@ class GoalFamilySpec:
     interpolation: tuple[tuple[float, ...], ...]
     extrapolation: tuple[tuple[float, ...], ...]
     description: str
+    alpha_psi: float = 1.0        # Table 11
+    episode_steps: int = 40       # Table 9's horizon
     reward_varies_only: bool = True
 
     @property
@@ -337,6 +339,18 @@ def domain_model(domain: str) -> tuple[str, dict]:
                'cheetah': cheetah.get_model_and_assets,
                'finger': finger.get_model_and_assets}
     return loaders[domain]()
+
+
+def as_values(value) -> tuple[float, ...]:
+    """Return a task's value as a value tuple: (v,) for a one-parameter family's number."""
+    if isinstance(value, tuple | list | np.ndarray):
+        return tuple(float(v) for v in value)
+    return (float(value),)
+
+
+def format_task(value) -> str:
+    """Return a task's value as text: '0.4', or '0.445 -0.0705' for several parameters."""
+    return ' '.join(f'{v:.6g}' for v in as_values(value))
 
 
 def get_family(name: str) -> FamilySpec:

@@ -439,6 +439,10 @@ class SawyerPegEnv:
         mujoco.mj_forward(self._model, self._data)
         self._goal = goal
 
+    def set_values(self, values: Goal) -> None:
+        """`set_goal` under the name every env has (the evaluator's)."""
+        self.set_goal(values)
+
     def prepare_values(self, values: Goal) -> PreparedGoal:
         """Check a goal for a live swap: nothing to compile, unlike ParamEnv's."""
         reason = check_goal(values)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from conftest import installed_exe, REPO, spin_until
+import numpy as np
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -143,10 +144,14 @@ def wait_loop_running(ros_node, steps, timeout=60.0):
 
 
 def episode_rewards(ros_node, driver, steps, seed: int, friction: float | None = None,
-                    params: dict | None = None) -> list[float]:
+                    params: dict | None = None, length: int = 1000) -> np.ndarray:
     """Rewards of one full episode from a reset, once the loop runs (`steps`: collected).
 
-    The reset sets `params` (default: the walker's friction).
+    The reset sets `params` (default: the walker's friction). Index i holds
+    step i + 1's reward, NaN where this observer missed the StepInfo: the loop
+    runs lockstep at hundreds of steps per second, and a loaded test process
+    that falls more than the writer's keep-last 10 behind loses states (the
+    loop's own nodes do not; see README, QoS). `assert_same_rewards` compares.
     """
     wait_loop_running(ros_node, steps)
     # The episode number comes from the reset's answer: its first state may be
@@ -161,9 +166,25 @@ def episode_rewards(ros_node, driver, steps, seed: int, friction: float | None =
         return any((s.episode == episode and s.truncated) or s.episode > episode
                    for s in steps[-5:])
     assert spin_until(ros_node, finished, 120.0), 'the episode did not finish through ROS'
-    rewards = [s.reward for s in steps if s.episode == episode and s.step > 0]
-    assert len(rewards) == 1000, (episode, len(rewards), sorted({s.episode for s in steps}))
+    rewards = np.full(length, np.nan)
+    for s in steps:
+        if s.episode == episode and 0 < s.step <= length:
+            rewards[s.step - 1] = s.reward
     return rewards
+
+
+def assert_same_rewards(observed: np.ndarray, expected) -> None:
+    """Assert the ROS episode is the in-process one: every observed reward equal, bit for bit.
+
+    The run is deterministic, so a divergence at any step changes the rewards
+    of every later one: equal observed rewards through the last step, with at
+    most a few steps unobserved, are the same episode.
+    """
+    expected = np.asarray(expected)
+    seen = ~np.isnan(observed)
+    assert len(observed) == len(expected), (len(observed), len(expected))
+    assert seen[-1] and seen.mean() >= 0.95, f'observed {seen.sum()} of {len(seen)} steps'
+    np.testing.assert_array_equal(observed[seen], expected[seen])
 
 
 def start_sim(spawn, ros_node, **params):

@@ -254,6 +254,9 @@ class StubModel:
     def __init__(self, latent, decode):
         self.latent, self.decode = np.asarray(latent, dtype=np.float32), decode
 
+    def decode_values(self, latent):
+        return np.atleast_1d(self.decode(latent))
+
     def context(self, rows, mask, true_param=None):
         return self.latent
 
@@ -271,12 +274,17 @@ def test_context_guard_publishes_the_empty_window_context_instead_of_non_finite_
         guard = ContextGuard(StubModel(latent, decode))
         got_latent, estimate, problem = guard.context(rows, mask)
         np.testing.assert_array_equal(got_latent, want_latent)
-        assert estimate == want_estimate
+        assert estimate.tolist() == [want_estimate]
         assert bool(problem) == (latent[0] != 1.0)
     # Without a decoder the estimate is NaN by definition (Context.param_estimates).
     guard = ContextGuard(StubModel([1.0, 2.0, 3.0], lambda latent: math.nan))
     _, estimate, problem = guard.context(rows, mask)
-    assert math.isnan(estimate) and not problem and guard.non_finite_estimates == 0
+    assert np.isnan(estimate).all() and not problem and guard.non_finite_estimates == 0
+    # Two parameters (Sawyer's goal x, y): only the bad one is replaced.
+    guard = ContextGuard(StubModel([1.0, 2.0, 3.0], lambda latent: np.array(
+        [0.5, 0.1] if not np.any(latent) else [0.6, math.inf])))
+    _, estimate, problem = guard.context(rows, mask)
+    assert estimate.tolist() == [0.6, 0.1] and problem and guard.non_finite_estimates == 1
 
 
 def test_the_policy_takes_an_integer_for_its_double_timeout(spawn, ros_node):

@@ -1,15 +1,24 @@
-"""sim_node running Sawyer-Peg-v0 over real DDS: both modes, live goal swaps, bad input."""
+"""Sawyer-Peg-v0 over real DDS: the sim, its goal swaps, checkpoints through three nodes.
+
+The sim in both modes with live goal swaps and bad input; trained checkpoints
+through sim, context and policy nodes, bit for bit.
+"""
 
 import subprocess
+import sys
 
-from conftest import installed_exe, spin_until
+from conftest import installed_exe, REPO, spin_until
 import numpy as np
+import pytest
 from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.parameter import Parameter
-from sim_driver import QOS, start_sim
+from sim_driver import (assert_same_rewards, collect, episode_rewards, LockstepDriver, QOS,
+                        start_node, start_sim)
 from sim_node.families import table7_goals
 from sim_node.sawyer import ACTION_NAMES, ENTRIES, SawyerPegEnv
-from zeus_msgs.msg import StepInfo
+from zeus_msgs.msg import Context, StepInfo
+from zeus_ros.deploy.inference import InferenceModel
+from zeus_ros.evaluate import run_episode
 from zeus_ros.ros.util import call_service
 
 FAMILY = 'sawyer-peg-v0'
@@ -102,3 +111,49 @@ def test_a_camera_on_the_sawyer_is_refused_at_start_with_a_reason():
                            f'family:={FAMILY}', '-p', 'camera_rate:=5.0'],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 1 and 'no camera yet' in done.stderr, done.stderr
+
+
+@pytest.fixture(scope='module')
+def sawyer_checkpoints(tmp_path_factory):
+    """Train a tiny checkpoint of a method a few real steps on sawyer-peg-v0, once."""
+    made = {}
+
+    def get(method):
+        if method not in made:
+            out = tmp_path_factory.mktemp(method) / 'run'
+            subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
+                            '--method', method, '--steps', '120', '--out', str(out),
+                            '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
+                            '--set', 'init_steps=60', 'hidden_dim=32', 'num_threads=1',
+                            'batch_size_per_task=4', 'replay_capacity=2000'],
+                           check=True, cwd=REPO, capture_output=True)
+            made[method] = out / 'checkpoint'
+        return made[method]
+    return get
+
+
+@pytest.mark.parametrize('method', ['zeus', 'oracle'])
+def test_a_trained_sawyer_checkpoint_runs_through_the_three_nodes_bit_exactly(
+        spawn, ros_node, sawyer_checkpoints, method):
+    """Both goal coordinates reach the context (oracle) and come back decoded (zeus)."""
+    weights = sawyer_checkpoints(method)
+    model = InferenceModel.load(weights)
+    assert model.param_names == ('goal_x', 'goal_y') and model.reward_in_observation
+    seed, goal = 6, table7_goals('interpolation')[2]
+    expected = run_episode(model, FAMILY, goal, seed)
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    contexts = collect(ros_node, Context, '/zeus/context')
+    start_node(spawn, 'sim_node', {'family': FAMILY, 'command_timeout': 5.0})
+    for name, extra in (('context_node', {}), ('policy_node', {'context_timeout': 5.0})):
+        start_node(spawn, name, {'weights': weights, **extra})
+    driver = LockstepDriver(ros_node)
+    driver.wait_ready()
+    rewards = episode_rewards(ros_node, driver, steps, seed,
+                              params=dict(zip(('goal_x', 'goal_y'), goal, strict=True)),
+                              length=len(expected.rewards))
+    assert len(expected.rewards) == 40
+    assert_same_rewards(rewards, expected.rewards)
+    published = [c for c in contexts if list(c.param_names) == ['goal_x', 'goal_y']]
+    assert published and all(len(c.param_estimates) == 2 for c in published)
+    if method == 'oracle':   # its estimate is the truth it was given
+        assert any(np.allclose(c.param_estimates, goal, atol=1e-6) for c in published)

@@ -164,15 +164,15 @@ def test_train_swaps_move_tasks_between_training_values_and_the_replay_follows(t
     for _ in range(20):
         trainer.collect()
         trainer.timestep += 1
-        seen |= {env.param_value for env in trainer.envs}
-        assert {env.param_value for env in trainer.envs} <= set(trainer.values)
+        seen |= {env.param_values for env in trainer.envs}
+        assert seen <= set(trainer.values)     # value tuples, one number each here
     n = len(trainer.replay)
     params = trainer.replay.param[:n].reshape(20, len(trainer.envs))
     assert len(seen) > 1 and len(set(params[-1])) > 1
     # Every transition carries the value in force when it was taken, which
     # after a swap is not its task's first one.
     assert (params[-1] == np.float32([env.param_value for env in trainer.envs])).all()
-    assert (params != np.asarray(trainer.values, np.float32)).any()
+    assert (params != np.asarray(trainer.values, np.float32).reshape(-1)).any()
     # Without swaps nothing moves, and no random draw is spent on them.
     still = train.Trainer(train.RunArgs(out=tmp_path / 'still', family=FAMILY,
                                         method='oracle', steps=0,
@@ -180,4 +180,4 @@ def test_train_swaps_move_tasks_between_training_values_and_the_replay_follows(t
     for _ in range(5):
         still.collect()
         still.timestep += 1
-    assert [env.param_value for env in still.envs] == list(still.values)
+    assert [env.param_values for env in still.envs] == list(still.values)

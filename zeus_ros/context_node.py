@@ -54,43 +54,45 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class ContextGuard:
-    """psi's latent and the decoded estimate, never non-finite.
+    """psi's latent and the decoded estimates (one per parameter), never non-finite.
 
     A non-finite latent is replaced by the empty window's: the zero latent (as
     defined in zeus_ros.core.window, whatever psi computes of an empty mask)
-    and its estimate. A non-finite estimate of a finite latent is replaced by
-    that same prior estimate. If the prior is NaN, the weights carry no
+    and its estimates. A non-finite estimate of a finite latent is replaced by
+    that same prior estimate. Where the prior is NaN, the weights carry no
     decoder, and NaN is what Context.param_estimates means by 'no estimate'.
     """
 
     def __init__(self, model: InferenceModel):
         self.model = model
         self.zero_latent = np.zeros(model.context_dim, dtype=np.float32)
-        prior = self._estimate(self.zero_latent)
-        self.prior_estimate = math.nan if math.isinf(prior) else prior
+        prior = self._estimates(self.zero_latent)
+        self.prior_estimates = np.where(np.isinf(prior), math.nan, prior)
         self.non_finite_latents = self.non_finite_estimates = 0
 
-    def _estimate(self, latent: np.ndarray) -> float:
-        value = self.model.decode(latent)
+    def _estimates(self, latent: np.ndarray) -> np.ndarray:
+        values = np.asarray(self.model.decode_values(latent), dtype=np.float64)
         # A float32 field would turn a larger float into inf (or refuse it).
-        return value if abs(value) <= FLOAT32_MAX or math.isnan(value) else math.inf
+        return np.where(np.abs(values) <= FLOAT32_MAX, values,
+                        np.where(np.isnan(values), math.nan, math.inf))
 
     def context(self, rows: np.ndarray, mask: np.ndarray,
-                true_param: float | None = None) -> tuple[np.ndarray, float, str]:
-        """(latent, estimate, problem): problem is '' when nothing was replaced."""
+                true_param=None) -> tuple[np.ndarray, np.ndarray, str]:
+        """(latent, estimates, problem): problem is '' when nothing was replaced."""
         latent = self.model.context(rows, mask, true_param)
         if not np.all(np.isfinite(latent)):
             self.non_finite_latents += 1
-            return self.zero_latent, self.prior_estimate, (
+            return self.zero_latent, self.prior_estimates, (
                 'psi gave a non-finite latent; published the zero latent instead')
-        estimate = self._estimate(latent)
-        if math.isinf(estimate) or (math.isnan(estimate)
-                                    and not math.isnan(self.prior_estimate)):
+        estimates = self._estimates(latent)
+        bad = np.isinf(estimates) | (np.isnan(estimates) & ~np.isnan(self.prior_estimates))
+        if bad.any():
             self.non_finite_estimates += 1
-            return latent, self.prior_estimate, (
-                f'the decoder gave {estimate}; published the prior estimate '
-                f'{self.prior_estimate:g} instead')
-        return latent, estimate, ''
+            fixed = np.where(bad, self.prior_estimates, estimates)
+            return latent, fixed, (
+                f'the decoder gave {estimates.tolist()}; published the prior estimate '
+                f'{self.prior_estimates[bad].tolist()} in its place')
+        return latent, estimates, ''
 
 
 class ContextNode(Node):
@@ -104,10 +106,10 @@ class ContextNode(Node):
                                              layout_from_metadata(self.model.metadata),
                                              on_clock=self.clock_event)
         self.guard = ContextGuard(self.model)
-        self.param_name = self.model.metadata['param_name']
-        # The sim's TRUE value (StepInfo.param_values): read only by privileged
-        # weights (oracle), which are defined as knowing it.
-        self.true_param = math.nan
+        self.param_names = list(self.model.param_names)
+        # The sim's TRUE values (StepInfo.param_values): read only by privileged
+        # weights (oracle), which are defined as knowing them.
+        self.true_param = np.full(len(self.param_names), math.nan)
         self.family_checked = False
         self.bad_messages = {'joint_state': 0, 'step_info': 0}
         self.received_at: dict[int, float] = {}
@@ -140,8 +142,8 @@ class ContextNode(Node):
         if not self.family_checked:
             check_family(msg.family, self.model)
             self.family_checked = True
-        if len(msg.param_values):
-            self.true_param = float(msg.param_values[0])
+        if len(msg.param_values) == len(self.param_names):
+            self.true_param = np.asarray(msg.param_values, dtype=np.float64)
         try:
             record = self.assembler.add_step_info(stamp_ns(msg.header), msg.episode, msg.step,
                                                   msg.reward, msg.applied_action,
@@ -168,11 +170,11 @@ class ContextNode(Node):
         if record is None:
             return
         true_param = self.true_param if self.model.needs_true_param else None
-        latent, estimate, problem = self.guard.context(*self.window.arrays(), true_param)
+        latent, estimates, problem = self.guard.context(*self.window.arrays(), true_param)
         if problem:
             self.warnings.warn('non_finite', problem)
         msg = Context(latent=latent.tolist(), window_fill=self.window.fill,
-                      param_names=[self.param_name], param_estimates=[estimate],
+                      param_names=self.param_names, param_estimates=estimates.tolist(),
                       reward=float(record.reward))
         set_stamp(msg.header, record.stamp_ns)
         self.context_pub.publish(msg)

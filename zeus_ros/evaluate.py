@@ -16,8 +16,10 @@
         obs = result.observation
     at the episode end (truncation, terminal or instability) the window is cleared.
 
-An optional swap schedule {step: value} calls `env.set_param(value)` before
+An optional swap schedule {step: value} calls `env.set_values(value)` before
 that step's context is computed (a live parameter swap; the window is kept).
+A value is a number for a one-parameter family, a tuple for one with several
+(Sawyer-Peg-v0's goal); records then hold one column per parameter.
 """
 
 from __future__ import annotations
@@ -29,8 +31,8 @@ import sys
 
 import numpy as np
 
-from sim_node.env import ParamEnv
-from sim_node.families import SPLITS
+from sim_node.env import make_env, ParamEnv
+from sim_node.families import as_values, format_task, get_sim_family, SPLITS
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
@@ -44,10 +46,11 @@ class EpisodeRecord:
     latents: np.ndarray       # [T, context_dim] float32
     actions: np.ndarray       # [T, action_dim] float64
     rewards: np.ndarray       # [T]
-    param_values: np.ndarray  # [T] parameter in force at each step
-    estimates: np.ndarray     # [T] decoder's parameter estimate at each step
+    param_values: np.ndarray  # [T] parameter in force at each step ([T, P] for several)
+    estimates: np.ndarray     # [T] decoder's parameter estimate at each step ([T, P])
     episode_return: float = 0.0
     instability: list = field(default_factory=list)
+    success: bool | None = None   # the task's success flag at the last step, where it has one
 
 
 class EpisodeProbe:
@@ -58,9 +61,9 @@ class EpisodeProbe:
     whether a policy acts on its context.
     """
 
-    def true_param(self, env: ParamEnv) -> float:
-        """Return the true value a privileged method is given."""
-        return env.param_value
+    def true_param(self, env: ParamEnv):
+        """Return the true value(s) a privileged method is given."""
+        return env.param_values
 
     def latent(self, latent: np.ndarray) -> np.ndarray:
         """Return the latent the policy acts on."""
@@ -90,11 +93,11 @@ class _Recorder:
                              np.asarray(r['est']), float(np.sum(r['rew'])), self.instability)
 
 
-def model_env(model: InferenceModel, value: float | None = None, seed: int | None = 0,
+def model_env(model: InferenceModel, value=None, seed: int | None = 0,
               family: str | None = None, **kwargs) -> ParamEnv:
     """Make an env (of the model's family by default) observing what the model reads."""
-    return ParamEnv(family or model.family, value, seed=seed,
-                    reward_in_obs=model.reward_in_observation, **kwargs)
+    return make_env(family or model.family, None if value is None else as_values(value),
+                    seed=seed, reward_in_obs=model.reward_in_observation, **kwargs)
 
 
 def _episode_env(model, family, value, seed, max_steps, env) -> ParamEnv:
@@ -105,12 +108,12 @@ def _episode_env(model, family, value, seed, max_steps, env) -> ParamEnv:
         raise ValueError(f'the env observes {env.obs_dim} values, the weights '
                          f'{model.obs_dim} (reward in the observation: '
                          f'{model.reward_in_observation})')
-    if env.param_value != value:
-        env.set_param(value)
+    if tuple(env.param_values) != as_values(value):
+        env.set_values(as_values(value))
     return env
 
 
-def run_episode(model: InferenceModel, family: str, value: float, seed: int,
+def run_episode(model: InferenceModel, family: str, value, seed: int,
                 swap_schedule: dict | None = None, max_steps: int | None = None,
                 env: ParamEnv | None = None, probe: EpisodeProbe | None = None) -> EpisodeRecord:
     """Run one deterministic episode in the ROS loop's order; return per-step records."""
@@ -120,17 +123,19 @@ def run_episode(model: InferenceModel, family: str, value: float, seed: int,
     obs = env.reset(seed=seed)
     swaps = dict(swap_schedule or {})
     rec = _Recorder()
-    step = 0
+    step, one = 0, len(model.param_names) == 1   # one parameter: records hold numbers
     while True:
         if step in swaps:
-            env.set_param(swaps[step])
+            env.set_values(as_values(swaps[step]))
         rows, mask = window.arrays()
         latent = probe.latent(model.context(rows, mask, probe.true_param(env)))
         action = model.act(obs, latent)
         probe.before_step(env, action)
         result = env.step(action)
-        rec.add(obs=obs, lat=latent, act=action, rew=result.reward, val=env.param_value,
-                est=model.decode(latent))
+        estimates = model.decode_values(latent)
+        rec.add(obs=obs, lat=latent, act=action, rew=result.reward,
+                val=env.param_values[0] if one else tuple(env.param_values),
+                est=estimates[0] if one else estimates)
         step += 1
         if result.instability:
             rec.instability.append((step, result.instability))
@@ -139,22 +144,38 @@ def run_episode(model: InferenceModel, family: str, value: float, seed: int,
         obs = result.observation
         if result.truncated or result.terminal:
             break
-    return rec.record()
+    record = rec.record()
+    record.success = getattr(result, 'success', None)
+    return record
 
 
 def evaluate(model: InferenceModel, values, episodes: int, seed: int,
              max_steps: int | None = None) -> list[dict]:
-    """Mean/std return and mean decoder estimate per value."""
+    """Mean/std return, mean decoder estimate(s) and, where the task has one, success rate.
+
+    `mean_estimate` is a number for a one-parameter family, a tuple (one per
+    parameter) for one with several; `success_rate` is None without a success flag.
+    """
     rows = []
     for v in values:
         recs = [run_episode(model, model.family, v, seed + e, max_steps=max_steps)
                 for e in range(episodes)]
         returns = [r.episode_return for r in recs]
-        full = np.concatenate([r.estimates[model.k:] for r in recs])
+        successes = [r.success for r in recs if r.success is not None]
         rows.append({'value': v, 'mean_return': float(np.mean(returns)),
                      'std_return': float(np.std(returns)), 'episodes': episodes,
-                     'mean_estimate': float(np.mean(full)) if full.size else math.nan})
+                     'mean_estimate': _mean_estimate(model, recs),
+                     'success_rate': float(np.mean(successes)) if successes else None})
     return rows
+
+
+def _mean_estimate(model: InferenceModel, recs: list[EpisodeRecord]):
+    """Mean estimate over the steps with a full window: a number, or one per parameter."""
+    full = np.concatenate([r.estimates[model.k:] for r in recs])
+    count = len(model.param_names)
+    mean = np.mean(full, axis=0) if len(full) else np.full(count, math.nan)
+    values = np.asarray(mean, dtype=np.float64).reshape(count)
+    return float(values[0]) if count == 1 else tuple(float(x) for x in values)
 
 
 def main(argv=None) -> int:
@@ -173,8 +194,7 @@ def main(argv=None) -> int:
     except CheckpointError as error:
         print(f'cannot load weights: {error}', file=sys.stderr)
         return 2
-    env = model_env(model)
-    values = args.values if args.values else env.spec.split(args.split)
+    values = args.values if args.values else get_sim_family(model.family).split(args.split)
     if not values:
         print(f'{model.family} has no {args.split} values', file=sys.stderr)
         return 2
@@ -182,12 +202,13 @@ def main(argv=None) -> int:
     print(f'family {model.family} ({meta["param_name"]}), checkpoint timestep '
           f'{meta["steps"].get("timestep")}, split {args.split if not args.values else "custom"}'
           f', {args.episodes} episode(s) per value, seed {args.seed}')
-    print(f'{"value":>10} {"mean_return":>12} {"std":>8} {"decoded":>10}')
+    print(f'{"value":>20} {"mean_return":>12} {"std":>8} {"decoded":>20} {"success":>8}')
     rows = evaluate(model, values, args.episodes, args.seed, args.max_steps)
     for r in rows:
-        print(f'{r["value"]:>10.4g} {r["mean_return"]:>12.2f} {r["std_return"]:>8.2f} '
-              f'{r["mean_estimate"]:>10.4g}')
-    print(f'{"mean":>10} {np.mean([r["mean_return"] for r in rows]):>12.2f}')
+        success = '' if r['success_rate'] is None else f'{r["success_rate"]:.2f}'
+        print(f'{format_task(r["value"]):>20} {r["mean_return"]:>12.2f} '
+              f'{r["std_return"]:>8.2f} {format_task(r["mean_estimate"]):>20} {success:>8}')
+    print(f'{"mean":>20} {np.mean([r["mean_return"] for r in rows]):>12.2f}')
     return 0
 
 

@@ -34,8 +34,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from sim_node.env import ParamEnv
-from sim_node.families import FAMILIES, SPLITS
+from sim_node.env import make_env, ParamEnv
+from sim_node.families import (as_values, format_task, get_sim_family, SIM_FAMILIES,
+                               SPLITS)
 from zeus_ros.deploy.checkpoint import (CheckpointError, load_training_checkpoint,
                                  numpy_generator_state, restore_numpy_generator,
                                  save_checkpoint)
@@ -53,8 +54,9 @@ TRAIN_COLUMNS = ('timestep', 'env_steps', 'wall_s', 'env_steps_per_s', 'critic_l
 
 
 def env_info(env: ParamEnv) -> dict:
-    """Describe the environment layout for the checkpoint metadata."""
-    return {'param_name': env.spec.param_name, 'joint_names': env.layout.joint_names,
+    """Describe the environment layout for the checkpoint metadata (any family's env)."""
+    return {'param_name': ', '.join(env.param_names), 'param_names': env.param_names,
+            'joint_names': env.layout.joint_names,
             'position_encoding': env.layout.position_encoding,
             'actuator_names': env.actuator_names, 'train_values': env.spec.train,
             'control_timestep': env.control_timestep,
@@ -65,7 +67,9 @@ def env_info(env: ParamEnv) -> dict:
 def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
                   **overrides) -> ZeusConfig:
     """Build the preset with the family's facts (Table 11's alpha_psi, reward-varying)."""
-    spec = FAMILIES[family]
+    spec = get_sim_family(family)
+    if hasattr(spec, 'episode_steps'):   # a family with its own horizon (Sawyer: Table 9's 40)
+        overrides = {'episode_steps': spec.episode_steps, **overrides}
     return make_config(family, profile, method, family_alpha_psi=spec.alpha_psi,
                        reward_varying=spec.reward_varies_only, **overrides)
 
@@ -73,6 +77,12 @@ def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
 def make_agent(cfg: ZeusConfig, env: ParamEnv) -> Agent:
     """Agent sized for the env, with the parameter normalised on the train values."""
     return Agent(cfg, env.obs_dim, env.action_dim, param_normaliser(env.spec.train))
+
+
+def make_replay(cfg: ZeusConfig, env, agent: Agent, seed: int) -> ReplayBuffer:
+    """Return the replay buffer sized for the env: the true values one column per parameter."""
+    return ReplayBuffer(cfg.replay_capacity, env.obs_dim, env.action_dim, cfg.context_length,
+                        agent.row_dim, seed=seed, param_dim=len(env.param_names))
 
 
 class CsvLog:
@@ -124,7 +134,7 @@ def parse_overrides(items) -> dict:
 def build_parser() -> argparse.ArgumentParser:
     """Command-line arguments of `train`; `RunArgs.from_cli` types them."""
     p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n')[0])
-    p.add_argument('--family', default='walker-walk-v0', choices=sorted(FAMILIES))
+    p.add_argument('--family', default='walker-walk-v0', choices=sorted(SIM_FAMILIES))
     p.add_argument('--steps', type=int, default=100_000,
                    help='timesteps (each steps every training task once)')
     p.add_argument('--seed', type=int, default=1)
@@ -211,14 +221,13 @@ class Trainer:
         self.rng = np.random.default_rng(args.seed)
         self.out = Path(args.out)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.values = FAMILIES[args.family].train
+        self.values = [as_values(v) for v in get_sim_family(args.family).train]
         self.batch_size = cfg.batch_size_per_task * len(self.values)
-        self.envs = [ParamEnv(args.family, v, seed=None, episode_steps=cfg.episode_steps,
+        self.envs = [make_env(args.family, v, seed=None, episode_steps=cfg.episode_steps,
                               reward_in_obs=cfg.reward_in_observation) for v in self.values]
         env0 = self.envs[0]
         self.agent = make_agent(cfg, env0)
-        self.replay = ReplayBuffer(cfg.replay_capacity, env0.obs_dim, env0.action_dim,
-                                   cfg.context_length, self.agent.row_dim, seed=args.seed)
+        self.replay = make_replay(cfg, env0, self.agent, args.seed)
         self.windows = [ContextWindow(cfg.context_length, env0.obs_dim, env0.action_dim)
                         for _ in self.envs]
         self.timestep = self.env_steps = self.episodes = 0
@@ -271,7 +280,7 @@ class Trainer:
         else:
             actions = self.agent.act(np.stack(self.obs), np.stack([c[0] for c in ctx]),
                                      np.stack([c[1] for c in ctx]),
-                                     [env.param_value for env in self.envs])
+                                     [env.param_values for env in self.envs])
         for i, env in enumerate(self.envs):
             self._step_task(i, env, actions[i])
 
@@ -282,8 +291,8 @@ class Trainer:
         jumps = self.rng.random(len(self.envs)) < self.cfg.train_swap_prob
         for env, jump in zip(self.envs, jumps, strict=True):
             if jump:
-                others = [v for v in self.values if v != env.param_value]
-                env.apply_prepared(env.prepare_param(float(self.rng.choice(others))))
+                others = [v for v in self.values if v != tuple(env.param_values)]
+                env.apply_prepared(env.prepare_values(others[self.rng.integers(len(others))]))
 
     def _step_task(self, i: int, env: ParamEnv, action: np.ndarray) -> None:
         res = env.step(action)
@@ -299,7 +308,7 @@ class Trainer:
         w.push(self.obs[i], action, res.reward, res.observation)
         # Time-limit truncation is not a terminal: bootstrap through it.
         self.replay.add(self.obs[i], action, res.reward, res.observation, res.terminal, i,
-                        env.param_value, continues)
+                        env.param_values, continues)
         self.ep_returns[i] += res.reward
         self.obs[i] = res.observation
         if res.terminal or res.truncated:
@@ -314,7 +323,7 @@ class Trainer:
         """Mean deterministic return per split, with the ROS episode's evaluator."""
         threads = torch.get_num_threads()
         model = InferenceModel.from_agent(self.agent, env_info(self.envs[0]))
-        spec = FAMILIES[self.args.family]
+        spec = get_sim_family(self.args.family)
         results = {}
         try:
             for split in self.args.eval_splits:
@@ -413,7 +422,7 @@ class TrainingLogs:
 
     def episode(self, tr: Trainer, task: int) -> None:
         self.episodes.write({'timestep': tr.timestep, 'env_steps': tr.env_steps, 'task': task,
-                             'value': tr.envs[task].param_value,
+                             'value': format_task(tr.envs[task].param_values),
                              'return': round(float(tr.ep_returns[task]), 4)})
         self.writer.add_scalar(f'train_return/task{task}', tr.ep_returns[task], tr.env_steps)
 
@@ -421,7 +430,8 @@ class TrainingLogs:
         for r in rows:
             self.eval.write({'timestep': tr.timestep, 'env_steps': tr.env_steps,
                              'wall_s': round(tr.wall_s(), 2), 'split': split,
-                             'value': r['value'], 'return': round(r['mean_return'], 4)})
+                             'value': format_task(r['value']),
+                             'return': round(r['mean_return'], 4)})
         mean = float(np.mean([r['mean_return'] for r in rows]))
         self.writer.add_scalar(f'eval/{split}_mean_return', mean, tr.env_steps)
         return mean

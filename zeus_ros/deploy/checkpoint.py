@@ -138,7 +138,7 @@ def build_metadata(agent, env_info: dict, counters: dict, run: dict | None = Non
     return {
         'format_version': FORMAT_VERSION,
         'family': cfg.family,
-        'param_name': env_info['param_name'],
+        **_parameter_names(env_info),
         'obs_layout': {'obs_dim': agent.obs_dim,
                        'joint_names': list(env_info['joint_names']),
                        'position_encoding': list(env_info['position_encoding']),
@@ -155,9 +155,10 @@ def build_metadata(agent, env_info: dict, counters: dict, run: dict | None = Non
                     'method': cfg.method,
                     'needs_true_param': agent.method.needs_true_param,
                     'empty_window': 'zero latent'},
-        'param_normalisation': {**_one_parameter_scale(agent.param),
+        'param_normalisation': {**_normalisation(agent.param),
                                 'formula': '(value - offset) / scale',
-                                'train_values': list(env_info['train_values'])},
+                                'train_values': [v if isinstance(v, float | int) else list(v)
+                                                 for v in env_info['train_values']]},
         'control_timestep': env_info.get('control_timestep'),
         'config': cfg.to_dict(),
         'steps': dict(counters, **({} if wall_s is None else {'wall_s': round(wall_s, 2)})),
@@ -241,12 +242,19 @@ def load_metadata(path, expected_family: str | None = None, obs_dim: int | None 
     return meta
 
 
-def _one_parameter_scale(param) -> dict:
-    """Return offset and scale as metadata.json holds them: numbers (one parameter so far)."""
-    if param.param_dim != 1:
-        raise CheckpointError(f'checkpoints hold one parameter so far; this agent has '
-                              f'{param.param_dim} (multi-parameter families: issue #19)')
-    return {'offset': param.offset[0], 'scale': param.scale[0]}
+def _parameter_names(env_info: dict) -> dict:
+    """param_name (always, as older readers expect) and, for several, param_names."""
+    names = tuple(env_info.get('param_names') or (env_info['param_name'],))
+    if len(names) == 1:
+        return {'param_name': names[0]}
+    return {'param_name': ', '.join(names), 'param_names': list(names)}
+
+
+def _normalisation(param) -> dict:
+    """Return offset and scale as metadata.json holds them: numbers for one parameter, lists."""
+    if param.param_dim == 1:
+        return {'offset': param.offset[0], 'scale': param.scale[0]}
+    return {'offset': list(param.offset), 'scale': list(param.scale)}
 
 
 def _velocity_encoding(env_info: dict) -> dict:

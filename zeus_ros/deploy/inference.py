@@ -52,8 +52,9 @@ class InferenceModel:
         self.k = self.meta.context.k
         self.row_dim = self.meta.context.row_dim
         self.context_dim = method.context_dim
-        self.param_offset = self.meta.param_normalisation.offset
-        self.param_scale = self.meta.param_normalisation.scale
+        self.param_names = self.meta.names
+        self.param_offset = np.asarray(self.meta.param_normalisation.offsets)
+        self.param_scale = np.asarray(self.meta.param_normalisation.scales)
 
     @classmethod
     def from_agent(cls, agent, env_info: dict) -> 'InferenceModel':
@@ -71,10 +72,11 @@ class InferenceModel:
 
     @torch.no_grad()
     def context(self, rows: np.ndarray, mask: np.ndarray,
-                true_param: float | None = None) -> np.ndarray:
+                true_param=None) -> np.ndarray:
         """Latent context of one window (rows [k, row_dim], mask [k]) as float32.
 
-        `true_param` is read only by privileged methods (`needs_true_param`).
+        `true_param` (a number, or one per parameter) is read only by privileged
+        methods (`needs_true_param`).
         """
         _single_thread()
         rows = np.asarray(rows, dtype=np.float32)
@@ -82,7 +84,8 @@ class InferenceModel:
         if rows.shape != (self.k, self.row_dim) or mask.shape != (self.k,):
             raise ValueError(f'window must be rows {(self.k, self.row_dim)} and mask '
                              f'({self.k},), got {rows.shape} and {mask.shape}')
-        param = None if true_param is None else torch.tensor([float(true_param)])
+        param = None if true_param is None else torch.from_numpy(
+            np.asarray(true_param, dtype=np.float32).reshape(1, -1))
         latent = self.method.deployed_context(torch.from_numpy(rows)[None],
                                               torch.from_numpy(mask)[None], param)[0]
         return latent.numpy().astype(np.float32)
@@ -115,11 +118,18 @@ class InferenceModel:
         return self.actor.mean_action(x)[0].numpy().astype(np.float64)
 
     @torch.no_grad()
-    def decode(self, latent: np.ndarray) -> float:
-        """Physical-parameter estimate read from a latent (NaN without a decoder)."""
+    def decode_values(self, latent: np.ndarray) -> np.ndarray:
+        """Physical-parameter estimates read from a latent, one per name (NaN: no decoder)."""
         _single_thread()
         latent = np.asarray(latent, dtype=np.float32).reshape(1, -1)
         normalised = self.method.decode(torch.from_numpy(latent))
         if normalised is None:
-            return math.nan
-        return float(normalised[0, 0]) * self.param_scale + self.param_offset
+            return np.full(len(self.param_names), math.nan)
+        return normalised[0].numpy().astype(np.float64) * self.param_scale + self.param_offset
+
+    def decode(self, latent: np.ndarray) -> float:
+        """Return the estimate of a one-parameter family's parameter (NaN without a decoder)."""
+        if len(self.param_names) != 1:
+            raise ValueError(f'{self.family} has {len(self.param_names)} parameters: '
+                             'use decode_values')
+        return float(self.decode_values(latent)[0])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, is_dataclass, MISSING
 import math
+import types
 import typing
 
 from zeus_ros.core.config import ZeusConfig
@@ -58,12 +59,26 @@ class ContextMeta:
 
 @dataclass(frozen=True)
 class ParamNormMeta:
-    """Min-max normalisation of the physical parameter: (value - offset) / scale."""
+    """Min-max normalisation of the physical parameter(s): (value - offset) / scale.
 
-    offset: float
-    scale: float
-    train_values: tuple[float, ...] = ()
+    A number each for a one-parameter family; a list (one entry per name of
+    `param_names`) for a family with several, whose train values are lists too.
+    """
+
+    offset: float | tuple[float, ...]
+    scale: float | tuple[float, ...]
+    train_values: tuple[float | tuple[float, ...], ...] = ()
     formula: str = '(value - offset) / scale'
+
+    @property
+    def offsets(self) -> tuple[float, ...]:
+        """The offsets as a tuple, one per parameter."""
+        return self.offset if isinstance(self.offset, tuple) else (self.offset,)
+
+    @property
+    def scales(self) -> tuple[float, ...]:
+        """The scales as a tuple, one per parameter."""
+        return self.scale if isinstance(self.scale, tuple) else (self.scale,)
 
 
 @dataclass(frozen=True)
@@ -80,7 +95,7 @@ class CheckpointMetadata:
 
     format_version: int
     family: str
-    param_name: str
+    param_name: str    # several parameters: their names joined by ', ' (param_names lists them)
     obs_layout: ObsLayoutMeta
     action_layout: ActionLayoutMeta
     context: ContextMeta
@@ -95,6 +110,12 @@ class CheckpointMetadata:
     created_unix: float | None = None
     replay_saved: bool = False
     extra: dict = field(default_factory=dict)
+    param_names: tuple[str, ...] = ()
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The parameters, in the order of values, normalisation and estimates."""
+        return self.param_names or (self.param_name,)
 
     @classmethod
     def parse(cls, raw) -> 'CheckpointMetadata':
@@ -130,10 +151,14 @@ def _build(cls, raw, where: str):
 
 def _value(kind, value, path: str):
     origin, args = typing.get_origin(kind), typing.get_args(kind)
-    if origin is typing.Union or (origin is not None and type(None) in args):
-        if value is None:
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
             return None
-        kind = next(a for a in args if a is not type(None))
+        # `float | tuple[...]`: a list is read as the tuple, anything else as the first.
+        listed = [a for a in args if typing.get_origin(a) is tuple]
+        others = [a for a in args if a is not type(None) and a not in listed]
+        kind = listed[0] if listed and (isinstance(value, list | tuple) or not others) \
+            else others[0]
         return _value(kind, value, path)
     if is_dataclass(kind):
         return _build(kind, value, f'{path}.')
@@ -194,8 +219,11 @@ def _check_consistency(meta: CheckpointMetadata) -> None:
         (ctx.row_dim == 2 * obs.obs_dim + act.action_dim + 1, 'context.row_dim',
          f'must be 2 * obs_dim + action_dim + 1 = {2 * obs.obs_dim + act.action_dim + 1}, '
          f'got {ctx.row_dim}'),
-        (meta.param_normalisation.scale > 0, 'param_normalisation.scale',
+        (all(s > 0 for s in meta.param_normalisation.scales), 'param_normalisation.scale',
          f'must be > 0, got {meta.param_normalisation.scale}'),
+        (len(meta.param_normalisation.offsets) == len(meta.param_normalisation.scales)
+         == len(meta.names), 'param_normalisation',
+         f'needs one offset and one scale per parameter {meta.names}'),
     )
     for ok, name, reason in checks:
         if not ok:

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from sim_node.families import get_family, SPLITS
+from sim_node.families import format_task, get_sim_family, SPLITS
 from zeus_ros.adaptation import build_report, ReportConfig
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.evaluate import evaluate
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     for name in SHIPPED:
         shutil.copyfile(args.run / 'checkpoint' / name, args.dest / name)
     model = InferenceModel.load(args.dest)
-    spec = get_family(model.family)
+    spec = get_sim_family(model.family)
     started = time.monotonic()
     results = {split: evaluate(model, spec.split(split), args.episodes, args.seed)
                for split in SPLITS if spec.split(split)}
@@ -75,7 +75,8 @@ def main(argv=None) -> int:
         record['adaptation_report'] = 'adaptation.json'
     (args.dest / 'record.json').write_text(json.dumps(record, indent=2))
     lines = [f'# {args.dest.name}', '', f'- family: `{model.family}` '
-             f'({spec.param_name}), method `{record["method"]}`, seed {record["seed"]}, '
+             f'({", ".join(spec.param_names)}), method `{record["method"]}`, '
+             f'seed {record["seed"]}, '
              f'alpha_psi = {record["alpha_psi"]}',
              f'- command: `{args.command}`',
              f'- steps: {meta["steps"]}',
@@ -87,18 +88,29 @@ def main(argv=None) -> int:
              f'episode(s) per value, seeds {args.seed}..{args.seed + args.episodes - 1}', '']
     if args.note:
         lines += [args.note, '']
-    lines += ['| split | value | mean return | std | mean decoded estimate |',
-              '|---|---|---|---|---|']
-    for split, rows in results.items():
-        for row in rows:
-            lines.append(f'| {split} | {row["value"]:g} | {row["mean_return"]:.1f} | '
-                         f'{row["std_return"]:.1f} | {row["mean_estimate"]:.3f} |')
-    lines += ['', '| split | mean return over values |', '|---|---|']
-    for split, rows in results.items():
-        lines.append(f'| {split} | {np.mean([r["mean_return"] for r in rows]):.1f} |')
+    lines += _result_tables(results)
     (args.dest / 'RECORD.md').write_text('\n'.join(lines) + '\n')
     print('\n'.join(lines))
     return 0
+
+
+def _result_tables(results: dict) -> list[str]:
+    """Per-value and per-split tables; a success column where the task has a success flag."""
+    success = any(r['success_rate'] is not None for rows in results.values() for r in rows)
+    extra = (' success rate |', '---|') if success else ('', '')
+    lines = ['| split | value | mean return | std | mean decoded estimate |' + extra[0],
+             '|---|---|---|---|---|' + extra[1]]
+    for split, rows in results.items():
+        for row in rows:
+            estimate = ' '.join(f'{v:.3f}' for v in np.atleast_1d(row['mean_estimate']))
+            tail = f' {row["success_rate"]:.2f} |' if success else ''
+            lines.append(f'| {split} | {format_task(row["value"])} | {row["mean_return"]:.1f} | '
+                         f'{row["std_return"]:.1f} | {estimate} |{tail}')
+    lines += ['', '| split | mean return over values |' + extra[0], '|---|---|' + extra[1]]
+    for split, rows in results.items():
+        tail = f' {np.mean([r["success_rate"] for r in rows]):.2f} |' if success else ''
+        lines.append(f'| {split} | {np.mean([r["mean_return"] for r in rows]):.1f} |{tail}')
+    return lines
 
 
 if __name__ == '__main__':

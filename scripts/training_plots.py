@@ -80,7 +80,8 @@ def final_eval(runs: list[Path], out: Path) -> Path:
         rows = read_csv(run / 'eval_log.csv')
         last = max(float(r['env_steps']) for r in rows)
         rows = [r for r in rows if float(r['env_steps']) == last]
-        labels = [f'{r["split"][:5]}\n{float(r["value"]):g}' for r in rows]
+        # The value as the log wrote it: '0.8', or '0.44 -0.07' for several parameters.
+        labels = [f'{r["split"][:5]}\n{r["value"]}' for r in rows]
         colours = [SPLIT_COLOURS.get(r['split']) for r in rows]
         ax.bar(np.arange(len(rows)) + i * width, [float(r['return']) for r in rows], width,
                color=colours, alpha=1.0 - 0.4 * i,

@@ -471,6 +471,18 @@ class SawyerPegEnv:
         tip = self._data.site_xpos[self._ids.peg_tip]
         return float(np.linalg.norm(tip - self.goal_position()))
 
+    def copy_state_from(self, other: 'SawyerPegEnv') -> None:
+        """Take another env's state, command and step count (any goal): as ParamEnv's.
+
+        Gives "the same state and action under another goal": the
+        counterfactual transitions of the adaptation report.
+        """
+        _SimState.capture(other.data).restore(self._model, self._data)
+        self._data.time = other.data.time
+        mujoco.mj_forward(self._model, self._data)
+        self.step_count = other.step_count
+        self._previous_reward = other._previous_reward
+
     def joint_positions(self) -> np.ndarray:
         """Positions of the ENTRIES, in their order (what /joint_states carries)."""
         data, ids = self._data, self._ids

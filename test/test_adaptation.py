@@ -116,3 +116,26 @@ def test_other_physics_window_is_the_same_step_under_the_other_value():
     np.testing.assert_array_equal(obs, expected.observation)
     assert reward == expected.reward
     assert not np.array_equal(obs, real.observation)  # the friction does change s'
+
+
+def test_a_two_parameter_oracle_is_identified_per_parameter_with_success_rates(
+        tmp_path_factory):
+    """Sawyer-Peg-v0: R^2 per goal coordinate, swaps along the goal change, success rates."""
+    report = build_report(str(train_tiny(tmp_path_factory, 'oracle', 'sawyer-peg-v0')),
+                          ReportConfig(episodes=1))
+    ident = report.identification
+    assert set(ident.r2_per_parameter) == {'goal_x', 'goal_y'}
+    assert all(r2 > 0.999 for r2 in ident.r2_per_parameter.values())   # the truth itself
+    assert ident.r2_per_step == pytest.approx(np.mean(list(ident.r2_per_parameter.values())))
+    assert all(len(s.from_value) == 2 and s.steps_to_70pct == 0 for s in report.swaps)
+    assert {r.split for r in report.returns} == {'train', 'interpolation'}
+    assert all(0.0 <= r.success_rate <= 1.0 for r in report.returns)
+    assert report.context_use.split == 'interpolation'
+
+
+def test_swap_coverage_of_a_two_parameter_change_is_measured_along_it():
+    estimates = np.zeros((20, 2))
+    estimates[10:] = [0.3, 0.6]          # the change is (0.5, 1.0): 60 % of it, then all
+    estimates[14:] = [0.5, 1.0]
+    assert steps_to_cover(estimates, 10, (0.0, 0.0), (0.5, 1.0)) == 4
+    assert steps_to_cover(estimates[:14], 10, (0.0, 0.0), (0.5, 1.0)) is None

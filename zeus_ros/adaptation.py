@@ -24,12 +24,18 @@ order of operations of the ROS loop):
 
 A method without a latent (`sac`) has no estimate and no context to perturb:
 those sections are reported as not applicable.
+
+A family with several parameters (Sawyer-Peg-v0's goal x and y) has value
+tuples: R^2 and Spearman are reported per parameter (and their mean), a swap
+is covered when the estimate has moved 70 % of the way along the change
+vector, and the other value is the farthest train value in Euclidean distance.
+A task with a success flag also gets its success rate per split.
 """
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import json
 from pathlib import Path
 import sys
@@ -37,7 +43,8 @@ import sys
 import numpy as np
 from scipy.stats import spearmanr
 
-from sim_node.env import ParamEnv
+from sim_node.env import make_env
+from sim_node.families import as_values, format_task, get_sim_family
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.evaluate import EpisodeProbe, run_episode
@@ -65,23 +72,26 @@ class SplitReturn:
     mean: float
     sem: float
     per_value: dict[str, float]
+    success_rate: float | None = None   # fraction of episodes ending in success, if defined
 
 
 @dataclass
 class Identification:
     """How well the decoded estimate follows the true value on held-out values."""
 
-    r2_per_step: float
+    r2_per_step: float                  # several parameters: the mean of theirs
     spearman_episode_means: float
-    per_value_mean_estimate: dict[str, float]
+    per_value_mean_estimate: dict[str, float | list[float]]
+    r2_per_parameter: dict[str, float] = field(default_factory=dict)
+    spearman_per_parameter: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
 class SwapResponse:
     """Steps after a live swap until the estimate covered 70 % of the change."""
 
-    from_value: float
-    to_value: float
+    from_value: float | list[float]
+    to_value: float | list[float]
     steps_to_70pct: int | None
 
 
@@ -140,7 +150,7 @@ class ZeroedContext(EpisodeProbe):
 class FrozenContext(EpisodeProbe):
     """The policy sees one fixed latent taken from an episode at another value."""
 
-    def __init__(self, latent: np.ndarray, other_value: float):
+    def __init__(self, latent: np.ndarray, other_value):
         self.frozen, self.other = latent.astype(np.float32), other_value
 
     def true_param(self, env):
@@ -153,9 +163,9 @@ class FrozenContext(EpisodeProbe):
 class OtherPhysicsWindow(EpisodeProbe):
     """The window holds (s, a, r', s'') simulated from the same s and a at another value."""
 
-    def __init__(self, family: str, other_value: float, max_steps: int,
+    def __init__(self, family: str, other_value, max_steps: int,
                  reward_in_obs: bool = False):
-        self.shadow = ParamEnv(family, other_value, seed=0, episode_steps=max_steps,
+        self.shadow = make_env(family, as_values(other_value), seed=0, episode_steps=max_steps,
                                reward_in_obs=reward_in_obs)
         self.other = other_value
         self.counterfactual = None
@@ -197,17 +207,24 @@ def _sem(values) -> float:
     return float(values.std(ddof=1) / np.sqrt(values.size)) if values.size > 1 else 0.0
 
 
+def value_key(value) -> str:
+    """Return a value as the report's keys name it: str(v), or '0.44 -0.07' for a tuple."""
+    return str(value) if isinstance(value, float | int) else format_task(value)
+
+
 def split_returns(model, spec, cfg: ReportConfig, records: dict) -> list[SplitReturn]:
-    """Per-split mean return (and its standard error over values)."""
+    """Per-split mean return (and its standard error over values), and success rate."""
     out = []
     for split in ('train', *HELD_OUT):
         values = spec.split(split)
         if not values:
             continue
-        per_value = {str(v): float(np.mean([r.episode_return for r in records[v]]))
+        per_value = {value_key(v): float(np.mean([r.episode_return for r in records[v]]))
                      for v in values}
+        successes = [r.success for v in values for r in records[v] if r.success is not None]
         out.append(SplitReturn(split, float(np.mean(list(per_value.values()))),
-                               _sem(list(per_value.values())), per_value))
+                               _sem(list(per_value.values())), per_value,
+                               float(np.mean(successes)) if successes else None))
     return out
 
 
@@ -219,41 +236,74 @@ def r_squared(truth, estimate) -> float:
 
 
 def identification(model, values, records: dict) -> Identification:
-    """R^2 over full-window steps and rank correlation of episode means, held-out values."""
-    truth, estimate, means, mean_truth = [], [], {}, []
-    episode_means = []
+    """R^2 over full-window steps and rank correlation of episode means, held-out values.
+
+    Per parameter; the headline figures are those of the one parameter, or
+    the mean over several.
+    """
+    count = len(model.param_names)
+    truth, estimate, means, mean_truth, episode_means = [], [], {}, [], []
     for v in values:
         for rec in records[v]:
-            full = rec.estimates[model.k:]
-            truth.extend([v] * full.size)
-            estimate.extend(full)
-            episode_means.append(float(np.mean(full)))
-            mean_truth.append(v)
-        means[str(v)] = float(np.mean([np.mean(r.estimates[model.k:]) for r in records[v]]))
-    rho = spearmanr(mean_truth, episode_means).statistic if len(set(mean_truth)) > 1 else np.nan
-    return Identification(r_squared(truth, estimate), float(rho), means)
+            full = np.asarray(rec.estimates[model.k:], float).reshape(-1, count)
+            truth.append(np.tile(as_values(v), (len(full), 1)))
+            estimate.append(full)
+            episode_means.append(full.mean(axis=0))
+            mean_truth.append(as_values(v))
+        mean = np.mean(episode_means[-len(records[v]):], axis=0)
+        means[value_key(v)] = float(mean[0]) if count == 1 else [float(m) for m in mean]
+    truth, estimate = np.concatenate(truth), np.concatenate(estimate)
+    mean_truth, episode_means = np.asarray(mean_truth), np.asarray(episode_means)
+    r2 = {n: r_squared(truth[:, i], estimate[:, i]) for i, n in enumerate(model.param_names)}
+    rho = {n: float(spearmanr(mean_truth[:, i], episode_means[:, i]).statistic)
+           if len(set(mean_truth[:, i])) > 1 else float('nan')
+           for i, n in enumerate(model.param_names)}
+    return Identification(float(np.mean(list(r2.values()))), float(np.mean(list(rho.values()))),
+                          means, r2, rho)
 
 
-def steps_to_cover(estimates: np.ndarray, swap_step: int, before: float, after: float):
-    """First step count after the swap at which 70 % of the true change is covered."""
-    start = float(np.mean(estimates[max(0, swap_step - 50):swap_step]))
-    change = after - before
-    covered = (estimates[swap_step:] - start) / change >= COVERED
+def steps_to_cover(estimates: np.ndarray, swap_step: int, before, after):
+    """First step count after the swap at which 70 % of the true change is covered.
+
+    For several parameters, the estimate's move is projected on the change vector.
+    """
+    change = np.asarray(as_values(after)) - np.asarray(as_values(before))
+    estimates = np.asarray(estimates, float).reshape(len(estimates), change.size)
+    start = np.mean(estimates[max(0, swap_step - 50):swap_step], axis=0)
+    covered = (estimates[swap_step:] - start) @ change / (change @ change) >= COVERED
     hits = np.flatnonzero(covered)
     return int(hits[0]) if hits.size else None
 
 
+def _farthest_pair(values) -> tuple:
+    """Return the two values farthest apart (a one-parameter split: its extremes)."""
+    pairs = [(a, b) for a in values for b in values]
+    return max(pairs, key=lambda p: _distance(*p))
+
+
+def _distance(a, b) -> float:
+    return float(np.linalg.norm(np.subtract(as_values(a), as_values(b))))
+
+
+def _json_value(value):
+    return value if isinstance(value, float | int) else list(as_values(value))
+
+
 def swap_responses(model, spec, cfg: ReportConfig) -> list[SwapResponse]:
     """Live swaps between the extremes of the train and of the extrapolation values."""
-    pairs = [(min(spec.train), max(spec.train)), (max(spec.train), min(spec.train))]
+    a, b = _farthest_pair(spec.train)
+    pairs = [(a, b), (b, a)]
     if spec.extrapolation:
-        pairs += [(min(spec.extrapolation), max(spec.extrapolation)),
-                  (max(spec.extrapolation), min(spec.extrapolation))]
+        a, b = _farthest_pair(spec.extrapolation)
+        pairs += [(a, b), (b, a)]
     out = []
-    swap_cfg = ReportConfig(1, cfg.seed, cfg.swap_steps, cfg.swap_step, cfg.swap_steps)
+    steps = min(cfg.swap_steps, getattr(spec, 'episode_steps', cfg.swap_steps))
+    swap_step = min(cfg.swap_step, steps // 2)
+    swap_cfg = ReportConfig(1, cfg.seed, steps, swap_step, steps)
     for a, b in pairs:
-        rec = _episodes(model, a, swap_cfg, swap_schedule={cfg.swap_step: b})[0]
-        out.append(SwapResponse(a, b, steps_to_cover(rec.estimates, cfg.swap_step, a, b)))
+        rec = _episodes(model, a, swap_cfg, swap_schedule={swap_step: b})[0]
+        out.append(SwapResponse(_json_value(a), _json_value(b),
+                                steps_to_cover(rec.estimates, swap_step, a, b)))
     return out
 
 
@@ -286,9 +336,9 @@ def velocity_error(spec, speeds: dict) -> VelocityError:
     return VelocityError(per_value, per_split)
 
 
-def farthest_train_value(spec, value: float) -> float:
+def farthest_train_value(spec, value):
     """Return the training value farthest from `value` (the most different physics seen)."""
-    return max(spec.train, key=lambda t: abs(t - value))
+    return max(spec.train, key=lambda t: _distance(t, value))
 
 
 def context_use(model, spec, cfg: ReportConfig, records: dict) -> ContextUse:
@@ -321,10 +371,12 @@ def _verdict(intact: float, gap: float) -> str:
 def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
     """Run every measure for one checkpoint."""
     model = InferenceModel.load(weights)
-    spec = ParamEnv(model.family, seed=0).spec
+    spec = get_sim_family(model.family)
+    if hasattr(spec, 'episode_steps'):   # a family with its own horizon (Sawyer: 40 steps)
+        cfg = replace(cfg, max_steps=min(cfg.max_steps, spec.episode_steps))
     values = sorted({v for s in ('train', *HELD_OUT) for v in spec.split(s)})
     velocity = None
-    if spec.param_name == 'target_velocity':
+    if spec.param_names == ('target_velocity',):
         records, speeds = speed_recorded_episodes(model, values, cfg)
         velocity = velocity_error(spec, speeds)
     else:
@@ -345,7 +397,8 @@ def print_report(report: AdaptationReport) -> None:
     print(f'{report.family} {report.method} (k={report.k}, latent {report.context_dim}) '
           f'from {report.weights}')
     for r in report.returns:
-        print(f'  return {r.split:<14} {r.mean:8.1f} +- {r.sem:5.1f}')
+        success = '' if r.success_rate is None else f', success {r.success_rate:.2f}'
+        print(f'  return {r.split:<14} {r.mean:8.1f} +- {r.sem:5.1f}{success}')
     if report.velocity_error is not None:
         errors = report.velocity_error.mean_per_split
         print('  mean |speed - target|, m/s: ' + ', '.join(
@@ -356,8 +409,13 @@ def print_report(report: AdaptationReport) -> None:
     ident = report.identification
     print(f'  decoded estimate, held-out: R^2 {ident.r2_per_step:.3f}, '
           f'Spearman {ident.spearman_episode_means:.3f}')
+    if len(ident.r2_per_parameter) > 1:
+        print('  per parameter: ' + ', '.join(
+            f'{n} R^2 {r2:.3f} Spearman {ident.spearman_per_parameter[n]:.3f}'
+            for n, r2 in ident.r2_per_parameter.items()))
     for s in report.swaps:
-        print(f'  swap {s.from_value:g} -> {s.to_value:g}: 70 % covered after '
+        print(f'  swap {format_task(s.from_value)} -> {format_task(s.to_value)}: '
+              f'70 % covered after '
               f'{f"{s.steps_to_70pct} steps" if s.steps_to_70pct is not None else "never"}')
     use = report.context_use
     print(f'  {use.split} return: intact {use.intact:.1f}, zeroed {use.zeroed:.1f}, '

@@ -38,7 +38,7 @@ import sys
 
 import yaml
 
-from sim_node.families import FAMILIES
+from sim_node.families import SIM_FAMILIES
 from zeus_ros.core.methods import METHODS
 
 TRAIN_KEYS = ('eval_every', 'eval_episodes', 'eval_max_steps', 'checkpoint_every',
@@ -69,7 +69,7 @@ class SweepConfig:
         for key in ('families', 'methods', 'seeds'):
             raw[key] = tuple(raw.get(key, ()))
         cfg = cls(**raw)
-        bad = [f for f in cfg.families if f not in FAMILIES] + \
+        bad = [f for f in cfg.families if f not in SIM_FAMILIES] + \
             [m for m in cfg.methods if m not in METHODS]
         if bad or not (cfg.families and cfg.methods and cfg.seeds):
             raise ValueError(f'unknown or missing families/methods/seeds: {bad}')

@@ -10,8 +10,9 @@ value tuples.
 
 Every family describes its live parameters the same way (`live_params`, a
 tuple of `LiveParam`), and the sim node reads only that: a family's values
-are a tuple in `param_names` order. The trainer and the controllers support
-one-parameter families so far (`FamilySpec`).
+are a tuple in `param_names` order, through the sim node, the trainer, the
+controllers and the adaptation report (`get_sim_family`, `sim_node.env.make_env`).
+`get_family` is for what needs a dm_control family (`ParamEnv`, the repro scripts).
 """
 
 from __future__ import annotations
@@ -354,14 +355,14 @@ def format_task(value) -> str:
 
 
 def get_family(name: str) -> FamilySpec:
-    """Look a one-parameter family up by name (what the trainer and controllers run)."""
+    """Look a one-parameter dm_control family up by name (`ParamEnv`'s; the repro scripts)."""
     try:
         return FAMILIES[name]
     except KeyError:
         if name in GOAL_FAMILIES:
-            raise ValueError(f'{name} has {len(GOAL_FAMILIES[name].live_params)} parameters; '
-                             'the trainer and the controller nodes run one-parameter families '
-                             f'so far ({", ".join(FAMILIES)}); sim_node runs it') from None
+            raise ValueError(f'{name} has {len(GOAL_FAMILIES[name].live_params)} parameters '
+                             f'and its own env; this needs one of {", ".join(FAMILIES)}') \
+                from None
         raise ValueError(f'unknown family {name!r}; known: {", ".join(SIM_FAMILIES)}') from None
 
 

@@ -82,6 +82,19 @@ def test_bringup_composed_is_one_process_with_each_parameter_named_by_its_node()
     assert not any(arg.startswith(('mode:=', 'weights:=')) for arg in argv)
 
 
+def test_bringup_takes_a_bare_value_or_named_values_and_refuses_the_rest():
+    from zeus_ros.bringup import initial_values
+    assert initial_values('walker-walk-v0', ['1.2']) == {'friction': 1.2}
+    assert initial_values('walker-walk-v0', ['friction=0.9']) == {'friction': 0.9}
+    assert initial_values('sawyer-peg-v0', ['goal_x=0.6', 'goal_y=0.07']) == {
+        'goal_x': 0.6, 'goal_y': 0.07}
+    for family, given, reason in (('sawyer-peg-v0', ['0.6'], 'give NAME=VALUE'),
+                                  ('sawyer-peg-v0', ['goal_z=1'], 'goal_x, goal_y'),
+                                  ('walker-walk-v0', ['friction=slippery'], 'not a number')):
+        with pytest.raises(SystemExit, match=reason):
+            initial_values(family, given)
+
+
 def _composed_launch_arguments(*values):
     """Run the launch file's composed_ros_arguments (it needs no `launch` import)."""
     tree = ast.parse((REPO / 'launch' / 'zeus.launch.py').read_text())

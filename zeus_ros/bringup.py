@@ -31,7 +31,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--family', help="environment family (default: the weights')")
     parser.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep')
     parser.add_argument('--seed', type=int, default=0, help='sim seed')
-    parser.add_argument('--param', type=float, help='initial value of the physical parameter')
+    parser.add_argument('--param', action='append', default=[], metavar='[NAME=]VALUE',
+                        help="initial value of the family's physical parameter; NAME=VALUE "
+                             'for a family with several (repeat: --param goal_x=0.6 '
+                             '--param goal_y=0.07)')
     parser.add_argument('--real-time-factor', type=float, default=1.0)
     parser.add_argument('--command-timeout', type=float, default=0.5)
     parser.add_argument('--context-timeout', type=float, default=0.5)
@@ -53,13 +56,29 @@ def node_parameters(args: argparse.Namespace) -> dict[str, dict]:
     sim_params = {'family': family, 'mode': args.mode, 'seed': args.seed,
                   'real_time_factor': args.real_time_factor,
                   'command_timeout': args.command_timeout}
-    if args.param is not None:
-        from sim_node.families import get_family
-        sim_params[get_family(family).param_name] = args.param
+    sim_params.update(initial_values(family, args.param))
     params = {'sim_node': sim_params, 'context_node': {'weights': weights},
               'policy_node': {'weights': weights, 'context_timeout': args.context_timeout}}
     return {name: {**values, 'thread_priority': args.thread_priority}
             for name, values in params.items()}
+
+
+def initial_values(family: str, given: list[str]) -> dict[str, float]:
+    """`--param` arguments as sim_node parameters: a bare number is the only parameter's."""
+    from sim_node.families import get_sim_family
+    names = get_sim_family(family).param_names
+    values = {}
+    for item in given:
+        name, _, text = item.rpartition('=')
+        name = name or (names[0] if len(names) == 1 else '')
+        if name not in names:
+            raise SystemExit(f'--param {item}: {family} has ' + ', '.join(names)
+                             + ('' if name else '; give NAME=VALUE'))
+        try:
+            values[name] = float(text)
+        except ValueError:
+            raise SystemExit(f'--param {item}: {text!r} is not a number') from None
+    return values
 
 
 def _param_args(values: dict, prefix: str = '') -> list[str]:

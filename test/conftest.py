@@ -143,6 +143,28 @@ def small_checkpoint(tmp_path_factory):
     return out / 'checkpoint'
 
 
+def train_tiny(out: Path, family: str, method: str, steps: int = 120) -> Path:
+    """Train a tiny checkpoint a few real steps (small networks, one thread); return it."""
+    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', family,
+                    '--method', method, '--steps', str(steps), '--out', str(out),
+                    '--eval-every', '0', '--checkpoint-every', str(steps), '--quiet',
+                    '--set', f'init_steps={min(100, steps - 20)}', 'hidden_dim=32',
+                    'num_threads=1', 'batch_size_per_task=4', 'replay_capacity=2000'],
+                   check=True, cwd=REPO, capture_output=True)
+    return out / 'checkpoint'
+
+
+def tiny_checkpoints(tmp_path_factory, family: str):
+    """Return get(method): a tiny checkpoint of that method on `family`, trained once."""
+    made = {}
+
+    def get(method):
+        if method not in made:
+            made[method] = train_tiny(tmp_path_factory.mktemp(method) / 'run', family, method)
+        return made[method]
+    return get
+
+
 # Fixtures that start processes or a DDS participant: a test using any of them
 # (directly or through another fixture) is a `ros` test, and so is every test of
 # a module that declares `pytestmark = pytest.mark.ros` (it starts its own

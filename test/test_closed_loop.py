@@ -1,6 +1,6 @@
 """The three nodes on real DDS are the trained agent: equal returns, faults survived."""
 
-from conftest import REPO, spin_until
+from conftest import spin_until, tiny_checkpoints, train_tiny
 import numpy as np
 import pytest
 from sim_driver import (assert_same_rewards, COLLECT_QOS, collect, episode_rewards, FAMILY,
@@ -131,37 +131,13 @@ def test_context_node_refuses_a_sim_of_another_family(loop, spawn, small_checkpo
 @pytest.fixture(scope='session')
 def method_checkpoints(tmp_path_factory):
     """Train a tiny checkpoint of a method a few real steps on walker-walk-v0, once."""
-    import subprocess
-    import sys
-    made = {}
-
-    def get(method):
-        if method not in made:
-            out = tmp_path_factory.mktemp(method) / 'run'
-            subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
-                            '--method', method, '--steps', '120', '--out', str(out),
-                            '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
-                            '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
-                            'batch_size_per_task=4', 'replay_capacity=2000'],
-                           check=True, cwd=REPO, capture_output=True)
-            made[method] = out / 'checkpoint'
-        return made[method]
-    return get
+    return tiny_checkpoints(tmp_path_factory, FAMILY)
 
 
 @pytest.fixture(scope='session')
 def reward_observing_checkpoint(tmp_path_factory):
     """Train a tiny zeus-id checkpoint of cheetah-run-v1 (its observation ends with r)."""
-    import subprocess
-    import sys
-    out = tmp_path_factory.mktemp('reward_obs') / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', 'cheetah-run-v1',
-                    '--method', 'zeus-id', '--steps', '120', '--out', str(out),
-                    '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
-                    '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
-                    'batch_size_per_task=4', 'replay_capacity=2000'],
-                   check=True, cwd=REPO, capture_output=True)
-    return out / 'checkpoint'
+    return train_tiny(tmp_path_factory.mktemp('reward_obs') / 'run', 'cheetah-run-v1', 'zeus-id')
 
 
 def test_a_policy_that_observes_the_reward_runs_through_the_nodes_bit_exactly(

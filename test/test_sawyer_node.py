@@ -5,9 +5,8 @@ through sim, context and policy nodes, bit for bit.
 """
 
 import subprocess
-import sys
 
-from conftest import installed_exe, REPO, spin_until
+from conftest import installed_exe, spin_until, tiny_checkpoints
 import numpy as np
 import pytest
 from rcl_interfaces.srv import SetParametersAtomically
@@ -116,20 +115,7 @@ def test_a_camera_on_the_sawyer_is_refused_at_start_with_a_reason():
 @pytest.fixture(scope='module')
 def sawyer_checkpoints(tmp_path_factory):
     """Train a tiny checkpoint of a method a few real steps on sawyer-peg-v0, once."""
-    made = {}
-
-    def get(method):
-        if method not in made:
-            out = tmp_path_factory.mktemp(method) / 'run'
-            subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', FAMILY,
-                            '--method', method, '--steps', '120', '--out', str(out),
-                            '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
-                            '--set', 'init_steps=60', 'hidden_dim=32', 'num_threads=1',
-                            'batch_size_per_task=4', 'replay_capacity=2000'],
-                           check=True, cwd=REPO, capture_output=True)
-            made[method] = out / 'checkpoint'
-        return made[method]
-    return get
+    return tiny_checkpoints(tmp_path_factory, FAMILY)
 
 
 @pytest.mark.parametrize('method', ['zeus', 'oracle'])

@@ -38,6 +38,13 @@ def sweep(args, **kw):
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
 
 
+@pytest.mark.parametrize('path', sorted((REPO / 'config' / 'sweeps').glob('*.yaml')),
+                         ids=lambda path: path.stem)
+def test_every_shipped_sweep_file_loads(path):
+    cfg = SweepConfig.load(path)
+    assert cfg.name == path.stem and cfg.families and cfg.methods and len(cfg.seeds) >= 3
+
+
 def test_bad_sweep_file_is_refused(tmp_path):
     bad = tmp_path / 'bad.yaml'
     bad.write_text('name: x\nfamilies: [nope]\nmethods: [sac]\nseeds: [1]\nsteps: 5\n')

@@ -240,6 +240,7 @@ class ParamEnv:
         self._last_reward = 0.0    # into the current state (the observation's last entry)
         self.actuator_names = tuple(model.id2name(i, 'actuator') for i in range(model.nu))
         self._writer = _ModelWriter(model.ptr)   # apply_prepared's (binding it takes ~1 ms)
+        self.default_camera = None               # the camera's choice (camera.pick_camera)
         self._structure = structure_of(model.ptr)
         self.step_count = 0
         self._reset_physics()

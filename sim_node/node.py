@@ -54,7 +54,7 @@ from zeus_msgs.srv import Reset
 
 from sim_node.camera import CameraPublisher
 from sim_node.env import make_env
-from sim_node.families import GOAL_FAMILIES, get_sim_family, SIM_FAMILIES
+from sim_node.families import get_sim_family, SIM_FAMILIES
 from sim_node.protocol import (check_reset_request, KEEP_STREAM, loop_problem,
                                parse_command, RecentCounts, SEED_MAX)
 from sim_node.stepper import MODES, PublishedState, SimStepper, StepOutcome
@@ -111,7 +111,8 @@ class SimNode(Node):
         self.physics_lock = threading.Lock()
         self.camera = CameraPublisher(self, lambda: self.env.physics, self._param('camera_rate'),
                                       lock=self.physics_lock,
-                                      get_stamp_ns=lambda: self.stepper.tick * self.stepper.dt_ns)
+                                      get_stamp_ns=lambda: self.stepper.tick * self.stepper.dt_ns,
+                                      camera=self.env.default_camera)
 
     def _create_interfaces(self) -> None:
         self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
@@ -170,9 +171,6 @@ class SimNode(Node):
             reason = self._parameter_problem(self.get_parameter(name))
             if reason is not None:
                 raise ValueError(f'parameter {name}: {reason}')
-        if self.spec.name in GOAL_FAMILIES and self._param('camera_rate') > 0:
-            raise ValueError(f'parameter camera_rate: {self.spec.name} has no camera yet; '
-                             'leave camera_rate at 0')
 
     def _parameters_text(self) -> str:
         live = self.spec.param_names

@@ -87,6 +87,19 @@ class PreparedGoal:
 
 
 @dataclass(frozen=True)
+class _ModelView:
+    ptr: mujoco.MjModel
+
+
+@dataclass(frozen=True)
+class PhysicsView:
+    """The part of a dm_control Physics the sim node's camera reads: `model.ptr`, `data`."""
+
+    model: _ModelView
+    data: mujoco.MjData
+
+
+@dataclass(frozen=True)
 class SawyerStepResult(StepResult):
     """A step's result, with the task's success (peg tip within SUCCESS_DISTANCE of the goal)."""
 
@@ -299,6 +312,9 @@ class SawyerPegEnv:
         self.control_timestep = CONTROL_TIMESTEP
         self.layout = LAYOUT
         self.actuator_names = ACTION_NAMES
+        # MuJoCo's free camera over the whole scene: metaworld's own cameras come
+        # out upside down through the sim's renderer (they are set up for theirs).
+        self.default_camera = -1
         self._random = np.random.RandomState(seed)
         self._hole_in_box = self._measure_hole_in_box()
         # Computed with the block at the scene's own place, far from the hand: the
@@ -361,6 +377,11 @@ class SawyerPegEnv:
     def data(self) -> mujoco.MjData:
         """The live MuJoCo data."""
         return self._data
+
+    @property
+    def physics(self) -> PhysicsView:
+        """The live model and data as the camera reads a Physics (the block moves in place)."""
+        return PhysicsView(_ModelView(self._model), self._data)
 
     # -- episode control --------------------------------------------------
     def reset(self, seed: int | None = None) -> np.ndarray:

@@ -229,3 +229,22 @@ def test_a_prepared_goal_applies_as_set_goal_and_a_bad_one_is_refused(env):
     for bad in ((0.6,), (0.9, 0.0), (0.6, math.nan), 'xy'):
         with pytest.raises(ValueError):
             env.prepare_values(bad)
+
+
+def test_the_camera_draws_the_block_where_the_goal_puts_it(env):
+    """The free camera (metaworld's own render upside down here); a goal swap moves the block."""
+    from sim_node.camera import geometry_of, SimCamera
+    camera = SimCamera(160, 120, camera=env.default_camera)
+    try:
+        frames = []
+        for goal in ((0.45, -0.075), (0.6, 0.075)):
+            env.set_goal(goal)
+            physics = env.physics
+            frames.append(camera.render_state(physics.model.ptr, physics.data.qpos.copy(),
+                                              None, geometry_of(physics.model.ptr)))
+    finally:
+        camera.close()
+    sky, floor = frames[0][:10].mean(), frames[0][-10:].mean()
+    assert sky > 0 and floor > 0                        # drawn, not a blank buffer
+    changed = (np.abs(frames[0].astype(int) - frames[1]).sum(axis=-1) > 30).sum()
+    assert changed > 20, changed          # the block moved (the same state otherwise)

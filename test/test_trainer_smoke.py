@@ -35,6 +35,7 @@ def test_training_writes_logs_and_checkpoint(run_dir):
     assert float(rows[-1]['env_steps']) == 150 * 8
     evals = list(csv.DictReader(open(run_dir / 'eval_log.csv')))
     assert len(evals) == 8 and all(r['split'] == 'train' for r in evals)
+    assert all(r['success'] == '' for r in evals)   # finger-spin has no success flag
     episodes = list(csv.DictReader(open(run_dir / 'episodes.csv')))
     assert len(episodes) == 8  # every task finished one 100-step episode by t=150
     assert list(run_dir.glob('tb/events.out.tfevents.*'))
@@ -181,3 +182,16 @@ def test_train_swaps_move_tasks_between_training_values_and_the_replay_follows(t
         still.collect()
         still.timestep += 1
     assert [env.param_values for env in still.envs] == list(still.values)
+
+
+def test_a_task_with_a_success_flag_logs_its_success_rate(tmp_path, capsys):
+    """Sawyer-Peg-v0's periodic evaluation writes a success rate per goal and prints it."""
+    argv = ['--family', 'sawyer-peg-v0', '--steps', '40', '--seed', '1', '--out', str(tmp_path),
+            '--eval-every', '40', '--eval-max-steps', '10', '--eval-splits', 'train',
+            '--checkpoint-every', '40', '--log-every', '20', '--set', *TINY[:-3],
+            'init_steps=30', 'num_threads=1']
+    assert train.main(argv) == 0
+    rows = list(csv.DictReader(open(tmp_path / 'eval_log.csv')))
+    assert rows and all(0.0 <= float(r['success']) <= 1.0 for r in rows)
+    printed = capsys.readouterr().out
+    assert '] train=' in printed and '(success ' in printed

@@ -13,10 +13,11 @@ the window before s_t and the one after (see `zeus_ros.core.replay`).
 Writes into ``--out``: ``checkpoint/`` (see `zeus_ros.deploy.checkpoint`, replaced
 atomically every ``--checkpoint-every`` timesteps and at the end),
 ``train_log.csv`` (averaged update metrics and speed), ``eval_log.csv`` (one
-row per split and parameter value), ``episodes.csv`` and TensorBoard scalars
-in ``tb/``. ``--resume`` continues from ``--out/checkpoint`` with the same
-config (networks, optimisers, counters, RNG states and, if saved, the replay
-buffer); environments start fresh episodes.
+row per split and parameter value: return and, where the task has one, success
+rate), ``episodes.csv`` and TensorBoard scalars in ``tb/``. ``--resume``
+continues from ``--out/checkpoint`` with the same config (networks, optimisers,
+counters, RNG states and, if saved, the replay buffer); environments start
+fresh episodes.
 """
 
 from __future__ import annotations
@@ -319,8 +320,8 @@ class Trainer:
             self.obs[i] = env.reset(seed=self._episode_seed(i))
             self.ep_returns[i] = 0.0
 
-    def evaluate(self) -> dict:
-        """Mean deterministic return per split, with the ROS episode's evaluator."""
+    def evaluate(self) -> dict[str, SplitScore]:
+        """Mean deterministic return and success rate per split, by the ROS episode's evaluator."""
         threads = torch.get_num_threads()
         model = InferenceModel.from_agent(self.agent, env_info(self.envs[0]))
         spec = get_sim_family(self.args.family)
@@ -349,7 +350,7 @@ class Trainer:
         if args.eval_every and self.timestep % args.eval_every == 0:
             evals = self.evaluate()
             tqdm.write(f'[eval t={self.timestep} env_steps={self.env_steps}] '
-                       + ' '.join(f'{k}={v:.1f}' for k, v in evals.items()))
+                       + ' '.join(f'{k}={v}' for k, v in evals.items()))
         if self.timestep % args.checkpoint_every == 0:
             self.checkpoint()
         if args.time_limit and time.monotonic() - self.started > 60 * args.time_limit:
@@ -382,6 +383,25 @@ class Trainer:
                 'elapsed_s': time.monotonic() - self.started, 'wall_s': self.wall_s()}
 
 
+@dataclass(frozen=True)
+class SplitScore:
+    """One split's periodic evaluation: mean return over its values, and success rate."""
+
+    mean_return: float
+    success_rate: float | None   # None where the task has no success flag
+
+    @classmethod
+    def of(cls, rows: list[dict]) -> SplitScore:
+        rates = [r['success_rate'] for r in rows if r['success_rate'] is not None]
+        return cls(float(np.mean([r['mean_return'] for r in rows])),
+                   float(np.mean(rates)) if rates else None)
+
+    def __str__(self) -> str:
+        if self.success_rate is None:
+            return f'{self.mean_return:.1f}'
+        return f'{self.mean_return:.1f} (success {self.success_rate:.2f})'
+
+
 class TrainingLogs:
     """The run's CSV logs and TensorBoard scalars, open from the trainer's construction."""
 
@@ -389,8 +409,10 @@ class TrainingLogs:
         from torch.utils.tensorboard import SummaryWriter
         self.writer = SummaryWriter(str(out / 'tb'))
         self.train = CsvLog(out / 'train_log.csv', TRAIN_COLUMNS)
-        self.eval = CsvLog(out / 'eval_log.csv',
-                           ('timestep', 'env_steps', 'wall_s', 'split', 'value', 'return'))
+        # `success`: the split's success rate at that value, empty where the task has no flag
+        # (a run resumed from before this column keeps its old header).
+        self.eval = CsvLog(out / 'eval_log.csv', ('timestep', 'env_steps', 'wall_s', 'split',
+                                                  'value', 'return', 'success'))
         self.episodes = CsvLog(out / 'episodes.csv',
                                ('timestep', 'env_steps', 'task', 'value', 'return'))
         self.sums: dict[str, float] = {}
@@ -426,15 +448,19 @@ class TrainingLogs:
                              'return': round(float(tr.ep_returns[task]), 4)})
         self.writer.add_scalar(f'train_return/task{task}', tr.ep_returns[task], tr.env_steps)
 
-    def evaluation(self, tr: Trainer, split: str, rows: list[dict]) -> float:
+    def evaluation(self, tr: Trainer, split: str, rows: list[dict]) -> SplitScore:
         for r in rows:
+            success = r['success_rate']
             self.eval.write({'timestep': tr.timestep, 'env_steps': tr.env_steps,
                              'wall_s': round(tr.wall_s(), 2), 'split': split,
                              'value': format_task(r['value']),
-                             'return': round(r['mean_return'], 4)})
-        mean = float(np.mean([r['mean_return'] for r in rows]))
-        self.writer.add_scalar(f'eval/{split}_mean_return', mean, tr.env_steps)
-        return mean
+                             'return': round(r['mean_return'], 4),
+                             'success': '' if success is None else round(success, 4)})
+        score = SplitScore.of(rows)
+        self.writer.add_scalar(f'eval/{split}_mean_return', score.mean_return, tr.env_steps)
+        if score.success_rate is not None:
+            self.writer.add_scalar(f'eval/{split}_success_rate', score.success_rate, tr.env_steps)
+        return score
 
     def close(self) -> None:
         self.writer.close()

@@ -47,6 +47,28 @@ def test_model_loads_from_metaworld_assets_under_the_pinned_mujoco():
     np.testing.assert_array_equal(model.eq_data[0, 3:10], [0, 0, 0, 1, 0, 0, 0])
 
 
+def test_envs_share_one_compilation_but_not_its_model():
+    """Each env gets a copy of the scene compiled once.
+
+    The copy simulates as a fresh compilation does, and one env's goal does not
+    move another's block.
+    """
+    copied, compiled = sawyer.fresh_model(), sawyer.build_model()
+    trajectories = []
+    for model in (copied, compiled):
+        data = mujoco.MjData(model)
+        data.ctrl[:] = (1.0, -1.0)
+        mujoco.mj_step(model, data, nstep=300)
+        trajectories.append(data.qpos.copy())
+    np.testing.assert_array_equal(*trajectories)
+    first = SawyerPegEnv((0.45, -0.08), seed=0)
+    second = SawyerPegEnv((0.60, 0.08), seed=0)
+    assert first._model is not second._model
+    assert not np.array_equal(first.hole_position(), second.hole_position())
+    first.set_goal((0.60, 0.08))
+    np.testing.assert_array_equal(first.hole_position(), second.hole_position())
+
+
 def test_reset_is_deterministic_per_seed(env):
     def rollout(target, seed):
         first = target.reset(seed)

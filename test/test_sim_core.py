@@ -50,10 +50,10 @@ def test_tables_as_printed():
         assert lo < min(values) and max(values) < hi
 
 
-def test_walker_friction_reaches_every_contact():
-    env = ParamEnv('walker-walk-v0', 0.3)
-    friction = env.physics.model.geom_friction[:, 0]
-    np.testing.assert_allclose(friction, 0.3)
+@pytest.mark.parametrize('family', ['walker-walk-v0', 'cheetah-run-slippery'])
+def test_friction_reaches_every_contact(family):
+    model = ParamEnv(family, 0.06).physics.model
+    np.testing.assert_allclose(model.geom_friction[:, 0], 0.06)   # ground and robot alike
 
 
 def test_foot_length_changes_both_feet():

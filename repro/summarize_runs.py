@@ -35,12 +35,14 @@ class RunFigures:
     speed_error: float | None     # interpolation, reward-varying families only
     r2: float | None              # decoded estimate on held-out values; None without a latent
     largest_gap: float | None     # return lost when the context is perturbed
+    success: tuple[float | None, float | None] = (None, None)   # train, interpolation
 
 
 def read_run(folder: Path) -> RunFigures:
     """Read one run's adaptation.json."""
     report = json.loads((folder / 'adaptation.json').read_text())
     returns = {r['split']: r['mean'] for r in report['returns']}
+    success = {r['split']: r.get('success_rate') for r in report['returns']}
     velocity = report.get('velocity_error') or {}
     identification = report.get('identification') or {}
     use = report.get('context_use') or {}
@@ -49,7 +51,8 @@ def read_run(folder: Path) -> RunFigures:
         train_return=returns['train'], interpolation_return=returns['interpolation'],
         extrapolation_return=returns.get('extrapolation'),
         speed_error=velocity.get('mean_per_split', {}).get('interpolation'),
-        r2=identification.get('r2_per_step'), largest_gap=use.get('largest_gap'))
+        r2=identification.get('r2_per_step'), largest_gap=use.get('largest_gap'),
+        success=(success.get('train'), success.get('interpolation')))
 
 
 def mean_se(values: list[float | None], digits: int) -> str:
@@ -69,20 +72,25 @@ def table(results: Path) -> str:
             missing.append(folder.name)
             continue
         groups[SEED_SUFFIX.sub('', folder.name)].append(read_run(folder))
+    # Success-rate columns only for tasks with a success flag (Sawyer-Peg-v0).
+    with_success = any(r.success != (None, None) for runs in groups.values() for r in runs)
     lines = ['| runs | seeds | train return | interpolation return | extrapolation return | '
              'interp. \\|speed - target\\| (m/s) | decoded R^2 (held-out) | '
-             'largest return lost, context perturbed |',
-             '|---|---|---|---|---|---|---|---|']
+             'largest return lost, context perturbed |'
+             + (' success, train | success, interpolation |' if with_success else ''),
+             '|---|---|---|---|---|---|---|---|' + ('---|---|' if with_success else '')]
     for name, runs in groups.items():
         runs.sort(key=lambda r: r.seed)
-        lines.append(' | '.join([
-            f'| {name}', ', '.join(str(r.seed) for r in runs),
-            mean_se([r.train_return for r in runs], 0),
-            mean_se([r.interpolation_return for r in runs], 0),
-            mean_se([r.extrapolation_return for r in runs], 0),
-            mean_se([r.speed_error for r in runs], 2),
-            mean_se([r.r2 for r in runs], 2),
-            mean_se([r.largest_gap for r in runs], 0)]) + ' |')
+        cells = [f'| {name}', ', '.join(str(r.seed) for r in runs),
+                 mean_se([r.train_return for r in runs], 0),
+                 mean_se([r.interpolation_return for r in runs], 0),
+                 mean_se([r.extrapolation_return for r in runs], 0),
+                 mean_se([r.speed_error for r in runs], 2),
+                 mean_se([r.r2 for r in runs], 2),
+                 mean_se([r.largest_gap for r in runs], 0)]
+        if with_success:
+            cells += [mean_se([r.success[i] for r in runs], 2) for i in (0, 1)]
+        lines.append(' | '.join(cells) + ' |')
     if missing:
         lines.append(f'\n(no adaptation report yet: {", ".join(missing)})')
     return '\n'.join(lines)

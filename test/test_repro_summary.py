@@ -9,10 +9,11 @@ import sys
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _report(folder: Path, train: float, interp: float, r2: float | None) -> None:
+def _report(folder: Path, train: float, interp: float, r2: float | None,
+            success: float | None = None) -> None:
     folder.mkdir(parents=True)
-    report = {'returns': [{'split': 'train', 'mean': train},
-                          {'split': 'interpolation', 'mean': interp}],
+    report = {'returns': [{'split': 'train', 'mean': train, 'success_rate': success},
+                          {'split': 'interpolation', 'mean': interp, 'success_rate': success}],
               'identification': None if r2 is None else {'r2_per_step': r2},
               'context_use': None}
     (folder / 'adaptation.json').write_text(json.dumps(report))
@@ -33,3 +34,20 @@ def test_groups_seeds_and_gives_mean_and_standard_error(tmp_path):
     assert '0.80 +- 0.10' in rows['cv1-zeus']
     assert rows['cv1-sac'].endswith('| -900 | -850 | - | - | - | - |')
     assert 'no adaptation report yet: cv1-zeus-s3' in out
+
+
+
+def _summary(folder: Path) -> str:
+    return subprocess.run([sys.executable, str(REPO / 'repro' / 'summarize_runs.py'),
+                           str(folder)], check=True, capture_output=True, text=True,
+                          env=os.environ | {'PYTHONPATH': str(REPO)}).stdout
+
+
+def test_success_rates_get_columns_only_where_the_task_has_them(tmp_path):
+    _report(tmp_path / 'cheetah' / 'cv0-sac-s1', 400.0, 410.0, None)
+    assert 'success' not in _summary(tmp_path / 'cheetah')
+    _report(tmp_path / 'sawyer' / 'sawyer-zeus-s1', 40.0, 45.0, 0.8, success=0.5)
+    _report(tmp_path / 'sawyer' / 'sawyer-zeus-s2', 50.0, 55.0, 0.6, success=0.7)
+    out = _summary(tmp_path / 'sawyer')
+    assert 'success, train | success, interpolation |' in out
+    assert out.splitlines()[2].endswith('| 0.60 +- 0.10 | 0.60 +- 0.10 |')

@@ -115,3 +115,17 @@ def test_the_final_evaluation_table_leaves_unfinished_runs_out_and_says_so():
     assert rows == [{'family': 'f', 'method': 'sac', 'split': 'train', 'mean': 40.0,
                      'sem': 10.0, 'seeds': 2, 'timestep': 200, 'unfinished': 1}]
     assert '| 2 (+1 unfinished, left out) | 200 |' in markdown(rows, {})
+
+
+@pytest.mark.unit
+def test_the_report_tables_give_success_rates_and_speed_errors_where_reports_have_them():
+    from zeus_ros.sweep_results import markdown, ReportFigures
+    rows = [{'family': 'sawyer-peg-v0', 'method': m, 'split': 'train', 'mean': 40.0, 'sem': 1.0,
+             'seeds': 2, 'timestep': 100, 'unfinished': 0} for m in ('zeus', 'sac')]
+    figures = {('sawyer-peg-v0', 'zeus'): ReportFigures(
+                   {'train': [40.0, 50.0]}, [0.7, 0.9], [30.0, 50.0],
+                   success_rate={'train': [0.5, 0.7], 'interpolation': [0.6, 0.6]}),
+               ('sawyer-peg-v0', 'sac'): ReportFigures({'train': [30.0, 32.0]}, [], [])}
+    text = markdown(rows, figures)
+    assert 'Success rate' in text and '| zeus | 0.60 +- 0.10 | 0.60 +- 0.00 | - |' in text
+    assert '| sac | ' in text and 'speed - target' not in text   # no method has one

@@ -111,6 +111,8 @@ class ReportFigures:
     largest_gap: list[float]
     # target-velocity families: split -> mean |speed - target| (m/s), per seed
     velocity_error: dict[str, list[float]] = field(default_factory=dict)
+    # tasks with a success flag (Sawyer-Peg-v0): split -> success rate, per seed
+    success_rate: dict[str, list[float]] = field(default_factory=dict)
 
 
 def run_report(run: Path, episodes: int, steps: int) -> dict | None:
@@ -144,6 +146,9 @@ def adaptation_figures(cfg: SweepConfig, episodes: int = 2) -> dict:
                     continue
                 for split in report['returns']:
                     figures.split_returns.setdefault(split['split'], []).append(split['mean'])
+                    if split.get('success_rate') is not None:
+                        figures.success_rate.setdefault(split['split'], []).append(
+                            split['success_rate'])
                 for split, error in (report.get('velocity_error') or {}).get(
                         'mean_per_split', {}).items():
                     figures.velocity_error.setdefault(split, []).append(error)
@@ -201,20 +206,27 @@ def _report_table(family: str, methods: list[str], figures: dict) -> list[str]:
         lines.append(f'| {method} | ' + ' | '.join(
             mean_sem_cell(fig.split_returns.get(s, [])) for s in SPLIT_ORDER) +
             f' | {seeds} | {mean_sem_cell(fig.r2, 2)} | {mean_sem_cell(fig.largest_gap)} |')
-    return [*lines, '', *_velocity_table(family, reported, figures)]
+    return [*lines, '',
+            *_per_split_table("Mean |speed - target| over each split's targets, m/s "
+                              '(lower is better):', 'velocity_error', 3, family, reported,
+                              figures),
+            *_per_split_table("Success rate over each split's values (the task's own flag at "
+                              "an episode's last step):", 'success_rate', 2, family, reported,
+                              figures)]
 
 
-def _velocity_table(family: str, methods: list[str], figures: dict) -> list[str]:
-    with_error = [m for m in methods if figures[(family, m)].velocity_error]
-    if not with_error:
+def _per_split_table(title: str, attribute: str, digits: int, family: str,
+                     methods: list[str], figures: dict) -> list[str]:
+    """Tabulate one figure per split and method, for the methods whose reports have it."""
+    having = [m for m in methods if getattr(figures[(family, m)], attribute)]
+    if not having:
         return []
-    lines = ["Mean |speed - target| over each split's targets, m/s (lower is better):", '',
-             '| method | ' + ' | '.join(SPLIT_ORDER) + ' |',
+    lines = [title, '', '| method | ' + ' | '.join(SPLIT_ORDER) + ' |',
              '|---' * (len(SPLIT_ORDER) + 1) + '|']
-    for method in with_error:
-        errors = figures[(family, method)].velocity_error
+    for method in having:
+        values = getattr(figures[(family, method)], attribute)
         lines.append(f'| {method} | ' + ' | '.join(
-            mean_sem_cell(errors.get(s, []), 3) for s in SPLIT_ORDER) + ' |')
+            mean_sem_cell(values.get(s, []), digits) for s in SPLIT_ORDER) + ' |')
     return [*lines, '']
 
 

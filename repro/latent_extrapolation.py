@@ -87,7 +87,9 @@ def probe_run(run: str) -> list[str]:
             for split in ('interpolation', 'extrapolation') if spec.split(split)}
     both = Steps(*(np.concatenate([getattr(s, f) for s in held.values()])
                    for f in ('latents', 'values', 'estimates')))
-    for name, steps in [*held.items(), ('held-out (both)', both)]:
+    train = collect(model, spec.split('train'), HELD_OUT_SEEDS)   # the fit's values, new starts
+    for name, steps in [('train (other start states)', train), *held.items(),
+                        ('held-out (both)', both)]:
         lines.append(f'| {name} | {r_squared(steps.values, steps.estimates):.3f} | '
                      f'{r_squared(steps.values, read(steps.latents)):.3f} |')
     lines += ['', '| true value | decoder, mean | ridge read, mean |', '|---|---|---|']

@@ -38,9 +38,14 @@ def _walker_friction(xml: str, friction: float) -> str:
     # walker geoms share: every foot-ground contact then has this friction.
     root = ElementTree.fromstring(xml)
     geom_default = root.find('./default/geom')
-    _, torsional, rolling = geom_default.get('friction').split()
-    geom_default.set('friction', f'{friction:.10g} {torsional} {rolling}')
+    geom_default.set('friction', _sliding(geom_default.get('friction'), friction))
     return ElementTree.tostring(root, encoding='unicode')
+
+
+def _sliding(friction_attribute: str, sliding: float) -> str:
+    """Return an MJCF friction triple with its sliding part replaced."""
+    _, torsional, rolling = friction_attribute.split()
+    return f'{sliding:.10g} {torsional} {rolling}'
 
 
 def _walker_foot_length(xml: str, half_length: float) -> str:
@@ -73,8 +78,7 @@ def _cheetah_friction(xml: str, friction: float) -> str:
     # contact takes the larger: set both, so every foot-ground contact has it.
     root = ElementTree.fromstring(xml)
     cheetah_geoms = root.find("./default/default[@class='cheetah']/geom")
-    _, torsional, rolling = cheetah_geoms.get('friction').split()
-    setting = f'{friction:.10g} {torsional} {rolling}'
+    setting = _sliding(cheetah_geoms.get('friction'), friction)
     cheetah_geoms.set('friction', setting)
     root.find(".//geom[@name='ground']").set('friction', setting)
     return ElementTree.tostring(root, encoding='unicode')

@@ -229,12 +229,13 @@ FAMILIES: dict[str, FamilySpec] = {
             live_range=(0.2, 2.0), alpha_psi=1.0,
             description='Cheetah run; torso length, total mass kept at 14 kg (Table 3).',
             edit_xml=_cheetah_torso_length),
-        # Not in the paper: a friction family measured to need adaptation? The
-        # walker's feet slip at 0.1-0.375 and yet its oracle was no better than
-        # sac there. A running cheetah loses most of its return below 0.2 (a
-        # policy trained at 1.0: 524 at 1.0, 432 at 0.2, 211 at 0.05, 101 at
+        # Not in the paper: a candidate friction family where adaptation matters.
+        # The walker's feet slip at 0.1-0.375 and yet its oracle was no better
+        # than sac there. A running cheetah loses most of its return below 0.2
+        # (a policy trained at 1.0: 524 at 1.0, 432 at 0.2, 211 at 0.05, 101 at
         # 0.02), so its gait has to change with friction. Splits shaped like
-        # Table 4; extrapolation below and above the training clusters.
+        # Table 4; extrapolation below and above the training clusters. Whether
+        # the oracle beats sac here: repro/results/cheetah_slippery_100k/.
         FamilySpec(
             name='cheetah-run-slippery', domain='cheetah', param_name='friction',
             param_unit='', default=0.15,

@@ -36,6 +36,7 @@ class RunFigures:
     r2: float | None              # decoded estimate on held-out values; None without a latent
     largest_gap: float | None     # return lost when the context is perturbed
     success: tuple[float | None, float | None] = (None, None)   # train, interpolation
+    largest_gap_train: float | None = None   # the same at the train values (newer reports)
 
 
 def read_run(folder: Path) -> RunFigures:
@@ -52,7 +53,8 @@ def read_run(folder: Path) -> RunFigures:
         extrapolation_return=returns.get('extrapolation'),
         speed_error=velocity.get('mean_per_split', {}).get('interpolation'),
         r2=identification.get('r2_per_step'), largest_gap=use.get('largest_gap'),
-        success=(success.get('train'), success.get('interpolation')))
+        success=(success.get('train'), success.get('interpolation')),
+        largest_gap_train=(report.get('context_use_train') or {}).get('largest_gap'))
 
 
 def mean_se(values: list[float | None], digits: int) -> str:
@@ -74,11 +76,16 @@ def table(results: Path) -> str:
         groups[SEED_SUFFIX.sub('', folder.name)].append(read_run(folder))
     # Success-rate columns only for tasks with a success flag (Sawyer-Peg-v0).
     with_success = any(r.success != (None, None) for runs in groups.values() for r in runs)
+    # Context use at the train values only where some report measured it.
+    with_train_gap = any(r.largest_gap_train is not None
+                         for runs in groups.values() for r in runs)
     lines = ['| runs | seeds | train return | interpolation return | extrapolation return | '
              'interp. \\|speed - target\\| (m/s) | decoded R^2 (held-out) | '
              'largest return lost, context perturbed |'
+             + (' the same at the train values |' if with_train_gap else '')
              + (' success, train | success, interpolation |' if with_success else ''),
-             '|---|---|---|---|---|---|---|---|' + ('---|---|' if with_success else '')]
+             '|---|---|---|---|---|---|---|---|' + ('---|' if with_train_gap else '')
+             + ('---|---|' if with_success else '')]
     for name, runs in groups.items():
         runs.sort(key=lambda r: r.seed)
         cells = [f'| {name}', ', '.join(str(r.seed) for r in runs),
@@ -88,6 +95,8 @@ def table(results: Path) -> str:
                  mean_se([r.speed_error for r in runs], 2),
                  mean_se([r.r2 for r in runs], 2),
                  mean_se([r.largest_gap for r in runs], 0)]
+        if with_train_gap:
+            cells.append(mean_se([r.largest_gap_train for r in runs], 0))
         if with_success:
             cells += [mean_se([r.success[i] for r in runs], 2) for i in (0, 1)]
         lines.append(' | '.join(cells) + ' |')

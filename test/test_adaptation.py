@@ -1,5 +1,6 @@
 """Adaptation report: its measures on synthetic data and on small real checkpoints."""
 
+from dataclasses import replace
 import subprocess
 import sys
 from pathlib import Path
@@ -68,12 +69,18 @@ def test_oracle_report_identifies_exactly_and_reacts_at_once(oracle):
     assert all(s.steps_to_70pct == 0 for s in report.swaps)
     assert {r.split for r in report.returns} == {'train', 'interpolation', 'extrapolation'}
     assert report.context_use.split == 'extrapolation'
+    assert report.context_use_train.split == 'train'
+    # the oracle's input is the truth: frozen at another value's, it is that value's
+    assert report.context_use_train.frozen_other != report.context_use_train.intact
+    quicker = build_report(str(oracle), replace(QUICK, context_use_train=False))
+    assert quicker.context_use_train is None and quicker.context_use == report.context_use
 
 
 def test_sac_report_has_no_context_sections(sac):
     report = build_report(str(sac), QUICK)
     assert report.context_dim == 0 and report.identification is None
     assert report.swaps == [] and report.context_use is None
+    assert report.context_use_train is None
 
 
 def test_velocity_error_is_measured_per_target_and_bounded_by_the_reward(

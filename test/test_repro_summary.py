@@ -51,3 +51,18 @@ def test_success_rates_get_columns_only_where_the_task_has_them(tmp_path):
     out = _summary(tmp_path / 'sawyer')
     assert 'success, train | success, interpolation |' in out
     assert out.splitlines()[2].endswith('| 0.60 +- 0.10 | 0.60 +- 0.10 |')
+
+
+def test_context_use_at_the_train_values_gets_a_column_where_reports_measured_it(tmp_path):
+    _report(tmp_path / 'old' / 'cs-oracle-s1', 300.0, 350.0, 1.0)
+    assert 'at the train values' not in _summary(tmp_path / 'old')
+    for seed, gap in ((1, 60.0), (2, 80.0)):
+        folder = tmp_path / 'new' / f'cs-oracle-s{seed}'
+        _report(folder, 300.0, 350.0, 1.0)
+        report = json.loads((folder / 'adaptation.json').read_text())
+        report['context_use'] = {'largest_gap': 5.0}
+        report['context_use_train'] = {'largest_gap': gap}
+        (folder / 'adaptation.json').write_text(json.dumps(report))
+    out = _summary(tmp_path / 'new')
+    assert 'the same at the train values |' in out
+    assert out.splitlines()[2].endswith('| 5 +- 0 | 70 +- 10 |')

@@ -20,7 +20,10 @@ order of operations of the ROS loop):
    value's episode, or inferred from window transitions simulated
    under another value (same states and actions, other physics). The other
    value is the train value farthest from the true one. A policy that ignores
-   the parameter shows no gap: the report says so.
+   the parameter shows no gap: the report says so. The same is measured at
+   the train values (`context_use_train`; `--no-context-use-train` skips it),
+   since a policy may use the parameter inside its training range and not
+   beyond it.
 
 A method without a latent (`sac`) has no estimate and no context to perturb:
 those sections are reported as not applicable.
@@ -62,6 +65,8 @@ class ReportConfig:
     max_steps: int = field(default=1000, metadata={'help': 'steps per episode'})
     swap_step: int = field(default=300, metadata={'help': 'step of the live swap'})
     swap_steps: int = field(default=600, metadata={'help': 'length of a swap episode'})
+    context_use_train: bool = field(default=True, metadata={
+        'help': 'also measure context use at the train values (3 perturbed runs per value)'})
 
 
 @dataclass
@@ -97,9 +102,9 @@ class SwapResponse:
 
 @dataclass
 class ContextUse:
-    """Mean return at the extrapolation values, intact and with the context perturbed."""
+    """Mean return over one split's values, intact and with the context perturbed."""
 
-    split: str      # where it was measured: extrapolation, or interpolation if a family has none
+    split: str      # held-out: extrapolation, or interpolation if a family has none; or train
     intact: float
     zeroed: float
     frozen_other: float
@@ -130,6 +135,7 @@ class AdaptationReport:
     swaps: list[SwapResponse]
     context_use: ContextUse | None
     velocity_error: VelocityError | None = None
+    context_use_train: ContextUse | None = None   # the same measure at the train values
 
     def to_json(self) -> str:
         """Indented JSON text of the report."""
@@ -341,14 +347,18 @@ def farthest_train_value(spec, value):
     return max(spec.train, key=lambda t: _distance(t, value))
 
 
-def context_use(model, spec, cfg: ReportConfig, records: dict) -> ContextUse:
-    """Measure returns at the extrapolation values, context intact and perturbed."""
-    split = 'extrapolation' if spec.extrapolation else 'interpolation'
+def held_out_split(spec) -> str:
+    """Name the split where a context is needed if anywhere: extrapolation, else interpolation."""
+    return 'extrapolation' if spec.extrapolation else 'interpolation'
+
+
+def context_use(model, spec, cfg: ReportConfig, records: dict, split: str) -> ContextUse:
+    """Measure returns at one split's values, context intact and perturbed."""
     values = spec.split(split)
     rows = {'intact': [], 'zeroed': [], 'frozen_other': [], 'inferred_other': []}
     for v in values:
         other = farthest_train_value(spec, v)
-        other_latent = np.mean(_episodes(model, other, cfg)[0].latents[model.k:], axis=0)
+        other_latent = np.mean(records[other][0].latents[model.k:], axis=0)   # a train value
         probes = {'zeroed': lambda: ZeroedContext(model),
                   'frozen_other': lambda lat=other_latent, o=other: FrozenContext(lat, o),
                   'inferred_other': lambda o=other: OtherPhysicsWindow(
@@ -383,13 +393,17 @@ def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
         records = {v: _episodes(model, v, cfg) for v in values}
     has_context = model.context_dim > 0
     held_out = sorted({v for s in HELD_OUT for v in spec.split(s)})
+    measure_train = has_context and cfg.context_use_train
     return AdaptationReport(
         weights=str(weights), family=model.family, method=model.method_name, k=model.k,
         context_dim=model.context_dim, returns=split_returns(model, spec, cfg, records),
         identification=identification(model, held_out, records) if has_context else None,
         swaps=swap_responses(model, spec, cfg) if has_context else [],
-        context_use=context_use(model, spec, cfg, records) if has_context else None,
-        velocity_error=velocity)
+        context_use=(context_use(model, spec, cfg, records, held_out_split(spec))
+                     if has_context else None),
+        velocity_error=velocity,
+        context_use_train=(context_use(model, spec, cfg, records, 'train')
+                           if measure_train else None))
 
 
 def print_report(report: AdaptationReport) -> None:
@@ -417,11 +431,13 @@ def print_report(report: AdaptationReport) -> None:
         print(f'  swap {format_task(s.from_value)} -> {format_task(s.to_value)}: '
               f'70 % covered after '
               f'{f"{s.steps_to_70pct} steps" if s.steps_to_70pct is not None else "never"}')
-    use = report.context_use
-    print(f'  {use.split} return: intact {use.intact:.1f}, zeroed {use.zeroed:.1f}, '
-          f'frozen at other value {use.frozen_other:.1f}, '
-          f'inferred from other physics {use.inferred_other:.1f}')
-    print(f'  policy {use.verdict}')
+    for use in (report.context_use, report.context_use_train):
+        if use is None:
+            continue
+        print(f'  {use.split} return: intact {use.intact:.1f}, zeroed {use.zeroed:.1f}, '
+              f'frozen at other value {use.frozen_other:.1f}, '
+              f'inferred from other physics {use.inferred_other:.1f}')
+        print(f'  at the {use.split} values the policy {use.verdict}')
 
 
 def main(argv=None) -> int:
@@ -431,8 +447,12 @@ def main(argv=None) -> int:
     p.add_argument('--json', type=Path, default=None, help='write the report here')
     defaults = ReportConfig()
     for name, f in ReportConfig.__dataclass_fields__.items():
-        p.add_argument(f'--{name.replace("_", "-")}', type=int, default=getattr(defaults, name),
-                       help=f.metadata['help'])
+        flag, default = f'--{name.replace("_", "-")}', getattr(defaults, name)
+        if isinstance(default, bool):
+            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=default,
+                           help=f.metadata['help'])
+        else:
+            p.add_argument(flag, type=int, default=default, help=f.metadata['help'])
     args = p.parse_args(argv)
     cfg = ReportConfig(**{n: getattr(args, n) for n in ReportConfig.__dataclass_fields__})
     try:

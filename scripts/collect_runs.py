@@ -5,8 +5,13 @@
 For each run directory: the trainer's logs (train_log.csv, eval_log.csv), the
 adaptation report (adaptation.json / .txt, if it was run) and run.json, the
 part of the checkpoint's metadata that says how the run was made (config,
-steps and wall time, run arguments, code commit). Not the weights or the
-replay buffer: results folders are committed, run folders are not.
+steps and wall time, run arguments, code commit). Not the replay buffer or
+the training state: results folders are committed, run folders are not (and
+are lost with the machine they trained on). With `--with-weights` also the
+inference weights (`checkpoint/model.safetensors` + `metadata.json`, about
+0.8 MB for a cheetah), so that later analyses (Figure 4, a newer adaptation
+report) can read the run from the committed folder:
+`python -m zeus_ros.adaptation --weights repro/results/<folder>/<run>`.
 """
 
 from __future__ import annotations
@@ -17,11 +22,14 @@ from pathlib import Path
 import shutil
 import sys
 
+from zeus_ros.deploy.checkpoint import METADATA_FILE, MODEL_FILE
+
 RESULT_FILES = ('train_log.csv', 'eval_log.csv', 'adaptation.json', 'adaptation.txt')
 RUN_KEYS = ('config', 'steps', 'run', 'git_commit')
+WEIGHT_FILES = (MODEL_FILE, METADATA_FILE)   # what InferenceModel.load reads
 
 
-def collect(run: Path, into: Path) -> list[str]:
+def collect(run: Path, into: Path, with_weights: bool = False) -> list[str]:
     """Copy one run's result files into `into/<run name>`; return what was copied."""
     meta_path = run / 'checkpoint' / 'metadata.json'
     if not meta_path.exists():
@@ -35,17 +43,25 @@ def collect(run: Path, into: Path) -> list[str]:
             copied.append(name)
     meta = json.loads(meta_path.read_text())
     (target / 'run.json').write_text(json.dumps({k: meta.get(k) for k in RUN_KEYS}, indent=2))
-    return [*copied, 'run.json']
+    copied.append('run.json')
+    if with_weights:
+        (target / 'checkpoint').mkdir(exist_ok=True)
+        for name in WEIGHT_FILES:
+            shutil.copy2(run / 'checkpoint' / name, target / 'checkpoint' / name)
+        copied.append('checkpoint/')
+    return copied
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('into', type=Path, help='results folder')
     p.add_argument('runs', type=Path, nargs='+', help='run directories')
+    p.add_argument('--with-weights', action='store_true',
+                   help='also copy the inference weights (checkpoint/, no training state)')
     args = p.parse_args(argv)
     for run in args.runs:
         try:
-            print(f'{run.name}: {", ".join(collect(run, args.into))}')
+            print(f'{run.name}: {", ".join(collect(run, args.into, args.with_weights))}')
         except FileNotFoundError as error:
             print(f'skipped: {error}', file=sys.stderr)
     return 0

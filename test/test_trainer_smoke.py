@@ -1,7 +1,11 @@
 """A short, tiny training run writes a checkpoint that `evaluate` loads and runs."""
 
 import csv
+import os
+from pathlib import Path
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -195,3 +199,20 @@ def test_a_task_with_a_success_flag_logs_its_success_rate(tmp_path, capsys):
     assert rows and all(0.0 <= float(r['success']) <= 1.0 for r in rows)
     printed = capsys.readouterr().out
     assert '] train=' in printed and '(success ' in printed
+
+
+def test_collected_run_with_weights_loads_from_the_results_folder(run_dir, tmp_path):
+    """collect_runs --with-weights: the committed folder alone replays the policy."""
+    repo = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, str(repo / 'scripts' / 'collect_runs.py'), str(tmp_path),
+                    str(run_dir), '--with-weights'], check=True, capture_output=True,
+                   env=os.environ | {'PYTHONPATH': str(repo)})
+    collected = tmp_path / run_dir.name
+    assert sorted(p.name for p in (collected / 'checkpoint').iterdir()) == [
+        'metadata.json', 'model.safetensors']          # no training state, no replay
+    assert (collected / 'run.json').exists() and (collected / 'train_log.csv').exists()
+    replayed = evaluate.run_episode(InferenceModel.load(collected), FAMILY, 0.1, seed=4,
+                                    max_steps=25)
+    original = evaluate.run_episode(InferenceModel.load(run_dir), FAMILY, 0.1, seed=4,
+                                    max_steps=25)
+    np.testing.assert_array_equal(replayed.actions, original.actions)

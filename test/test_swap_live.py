@@ -33,12 +33,17 @@ def may_use_sched_fifo() -> bool:
     return subprocess.run([sys.executable, '-c', probe], capture_output=True).returncode == 0
 
 
-# Under SCHED_FIFO (the README's set-up for realtime runs) the latest tick here
-# starts 0.1-0.75 ms late without swaps, 0.2-1.4 ms with them; the old swap (the
-# model rebuilt on the loop thread) made ticks around it 30-330 ms late. Under
-# the normal scheduler a busy 2-core machine alone makes ticks up to ~12 ms late.
+# What this test guards against is a swap that holds up the loop: the old swap
+# (the model rebuilt on the loop thread) made ticks around it 30-330 ms late.
+# How late a tick is otherwise depends on the machine, not on the swap: under
+# SCHED_FIFO on a quiet machine the latest tick starts 0.1-0.75 ms late without
+# swaps, 0.2-1.4 ms with them (README); under the normal scheduler a busy 2-core
+# machine alone makes ticks up to ~12 ms late, and a shared CI machine made one
+# 10 ms late under SCHED_FIFO. So the bound is the same for both schedulers,
+# below a control period; that no tick waits for a build is asserted without a
+# clock in test_stepper.py.
 FIFO = may_use_sched_fifo()
-LATE_BOUND_MS = 5.0 if FIFO else 20.0
+LATE_BOUND_MS = 20.0
 
 
 @pytest.fixture

@@ -129,3 +129,23 @@ def test_the_report_tables_give_success_rates_and_speed_errors_where_reports_hav
     text = markdown(rows, figures)
     assert 'Success rate' in text and '| zeus | 0.60 +- 0.10 | 0.60 +- 0.00 | - |' in text
     assert '| sac | ' in text and 'speed - target' not in text   # no method has one
+
+
+@pytest.mark.unit
+def test_the_report_table_gives_context_use_at_the_train_values_only_where_measured():
+    from zeus_ros.sweep_results import markdown, ReportFigures
+    rows = [{'family': 'f', 'method': m, 'split': 'train', 'mean': 40.0, 'sem': 1.0,
+             'seeds': 2, 'timestep': 100, 'unfinished': 0} for m in ('zeus', 'sac')]
+    older = {('f', 'zeus'): ReportFigures({'train': [40.0, 50.0]}, [0.7, 0.9], [30.0, 50.0]),
+             ('f', 'sac'): ReportFigures({'train': [30.0, 32.0]}, [], [])}
+    assert 'the same at the train values' not in markdown(rows, older)
+    newer = {**older, ('f', 'zeus'): ReportFigures({'train': [40.0, 50.0]}, [0.7, 0.9],
+                                                   [30.0, 50.0], largest_gap_train=[10.0, 20.0])}
+    table = [line for line in markdown(rows, newer).splitlines() if line.startswith('| ')]
+    header = next(line for line in table if 'the same at the train values' in line)
+    # the report's rows come after the trainer's own table
+    zeus, sac = ([line for line in table if line.startswith(f'| {m} |')][-1]
+                 for m in ('zeus', 'sac'))
+    assert zeus.endswith('| 40 +- 10 | 15 +- 5 |')
+    assert sac.endswith('| - | - | - |')
+    assert header.count('|') == zeus.count('|') == sac.count('|')

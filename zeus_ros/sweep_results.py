@@ -109,6 +109,8 @@ class ReportFigures:
     split_returns: dict[str, list[float]]   # split -> mean return over its values, per seed
     r2: list[float]
     largest_gap: list[float]
+    # the same at the train values (reports since context_use_train), per seed
+    largest_gap_train: list[float] = field(default_factory=list)
     # target-velocity families: split -> mean |speed - target| (m/s), per seed
     velocity_error: dict[str, list[float]] = field(default_factory=dict)
     # tasks with a success flag (Sawyer-Peg-v0): split -> success rate, per seed
@@ -155,6 +157,8 @@ def adaptation_figures(cfg: SweepConfig, episodes: int = 2) -> dict:
                 if report['identification'] is not None:
                     figures.r2.append(report['identification']['r2_per_step'])
                     figures.largest_gap.append(report['context_use']['largest_gap'])
+                if report.get('context_use_train') is not None:
+                    figures.largest_gap_train.append(report['context_use_train']['largest_gap'])
             if figures.split_returns:
                 out[(family, method)] = figures
     return out
@@ -196,16 +200,21 @@ def _report_table(family: str, methods: list[str], figures: dict) -> list[str]:
     reported = [m for m in methods if (family, m) in figures]
     if not reported:
         return []
+    # Context use at the train values: a column only where some report measured it.
+    with_train_gap = any(figures[(family, m)].largest_gap_train for m in reported)
     lines = ['Adaptation report of the final checkpoints (`zeus_ros.adaptation`):', '',
              '| method | ' + ' | '.join(SPLIT_ORDER) +
-             ' | seeds | R^2 decoded (held-out) | largest return gap, context perturbed |',
-             '|---' * (len(SPLIT_ORDER) + 4) + '|']
+             ' | seeds | R^2 decoded (held-out) | largest return gap, context perturbed |'
+             + (' the same at the train values |' if with_train_gap else ''),
+             '|---' * (len(SPLIT_ORDER) + 4 + with_train_gap) + '|']
     for method in reported:
         fig = figures[(family, method)]
         seeds = max(len(v) for v in fig.split_returns.values())
+        train_gap = f' {mean_sem_cell(fig.largest_gap_train)} |' if with_train_gap else ''
         lines.append(f'| {method} | ' + ' | '.join(
             mean_sem_cell(fig.split_returns.get(s, [])) for s in SPLIT_ORDER) +
-            f' | {seeds} | {mean_sem_cell(fig.r2, 2)} | {mean_sem_cell(fig.largest_gap)} |')
+            f' | {seeds} | {mean_sem_cell(fig.r2, 2)} | {mean_sem_cell(fig.largest_gap)} |'
+            + train_gap)
     return [*lines, '',
             *_per_split_table("Mean |speed - target| over each split's targets, m/s "
                               '(lower is better):', 'velocity_error', 3, family, reported,

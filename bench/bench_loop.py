@@ -20,7 +20,9 @@ Measures, with the same checkpoint:
    stepped on the older command).
    The realtime run gives the nodes SCHED_FIFO (--realtime-priority, default 50);
    --compare-normal-scheduler repeats it under the normal scheduler.
-5. live swap: from the parameter set request to the first StepInfo under the new value.
+5. live swap: from the parameter set request to the first StepInfo under the new value;
+   in realtime, how late the sim's ticks start while swaps arrive at 10 per second
+   (--realtime-swap-seconds), beside the same figures without swaps from (4).
 Prints a table and writes the figures as JSON (--json).
 """
 
@@ -206,6 +208,31 @@ def realtime_figures(observer: Observer, param_client, seconds: float, period_s:
             'late_commands': late_commands}
 
 
+def realtime_swap_figures(observer: Observer, param_client, seconds: float,
+                          param_name: str, values: tuple[float, float]) -> dict:
+    """Tick lateness while the parameter is swapped 10 times a second for `seconds`."""
+    set_mode = SetParameters.Request(
+        parameters=[Parameter('mode', value='realtime').to_parameter_msg()])
+    swaps_before = int(observer.sim_diagnostics[-1]['swaps'])  # counted since the sim started
+    observer.call(param_client, set_mode)   # restarts the lateness statistics
+    swaps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        value = values[swaps % 2]
+        observer.call(param_client, SetParameters.Request(
+            parameters=[Parameter(param_name, value=value).to_parameter_msg()]))
+        swaps += 1
+        observer.spin_until(lambda: False, start + 0.1 * swaps - time.perf_counter())
+    observer.sim_diagnostics.clear()
+    observer.spin_until(lambda: observer.sim_diagnostics, 5.0)  # the next 1 Hz report
+    sim = observer.sim_diagnostics[-1]
+    return {'swaps_sent': swaps, 'swaps_in_force': int(sim['swaps']) - swaps_before,
+            'swaps_sim_ticks': int(sim['ticks']),
+            'swaps_sim_tick_late_ms_p99': float(sim['tick_late_ms_p99']),
+            'swaps_sim_tick_late_ms_p999': float(sim['tick_late_ms_p999']),
+            'swaps_sim_tick_late_ms_max': float(sim['tick_late_ms_max']),
+            'swaps_sim_missed_ticks': int(sim['missed_ticks'])}
+
+
 def run_graph(weights: Path, mode: str, measure, thread_priority: int = 0,
               composed: bool = False) -> dict:
     bringup = Bringup(node_commands(bringup_args([
@@ -236,6 +263,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--episodes', type=int, default=5,
                         help='lockstep episodes (1000 steps each); the median rate is reported')
     parser.add_argument('--realtime-seconds', type=float, default=60.0)
+    parser.add_argument('--realtime-swap-seconds', type=float, default=10.0,
+                        help='after the realtime window, swap the parameter 10 times a '
+                             'second for this long (figures prefixed swaps_; 0 = skip)')
     parser.add_argument('--realtime-priority', type=int, default=50,
                         help="the nodes' SCHED_FIFO priority in the realtime run (bringup "
                              "--thread-priority; 0 = normal scheduler). Lockstep runs under "
@@ -293,10 +323,16 @@ def realtime_part(args, figures: dict) -> None:
     figures['realtime_family'] = rt_meta['family']
     figures['realtime_period_ms'] = period * 1e3
 
+    train_values = rt_meta['param_normalisation']['train_values']
+    swap_values = (min(train_values), max(train_values))
+
     def realtime(observer, node):
-        return realtime_figures(observer, node.create_client(SetParameters,
-                                                             '/sim_node/set_parameters'),
-                                args.realtime_seconds, period)
+        client = node.create_client(SetParameters, '/sim_node/set_parameters')
+        found = realtime_figures(observer, client, args.realtime_seconds, period)
+        if args.realtime_swap_seconds > 0:
+            found.update(realtime_swap_figures(observer, client, args.realtime_swap_seconds,
+                                               rt_meta['param_name'], swap_values))
+        return found
     figures['realtime_thread_priority'] = args.realtime_priority
     figures.update(run_graph(rt_weights, 'realtime', realtime, args.realtime_priority))
     if args.compare_normal_scheduler:

@@ -1,25 +1,29 @@
 """Reproduce Figure 4: rank correlation of learned context vs true parameter distances.
 
-Trains (or reuses) two cheetah-run-v0 runs of the same length and seed, with
-the context loss (alpha_psi = 1, Table 11) and without (alpha_psi = 0, the
-ZeUS-no-context-loss ablation), then for each run:
+Trains two cheetah-run-v0 runs of the same length and seed, with the context
+loss (alpha_psi = 1, Table 11) and without (alpha_psi = 0, the
+ZeUS-no-context-loss ablation), or analyses existing runs of any method with a
+learned latent (`--runs`: zeus, zeus-no-context-loss, zeus-id, cadm,
+hyperdynamics, up-osi; privileged methods such as the oracle, whose latent is
+the true parameter, are refused). For each run:
 
 1. collects context windows in every training task (all 11 train values of
    Table 3; the paper's Figure 4 shows 8 tasks) from the SAME uniform-random
-   trajectories for both runs (so only the encoders differ) and, separately,
-   from each run's own deterministic policy;
-2. encodes each full window (k = 5) with the run's psi and averages the latents
-   per task;
+   trajectories for every run of one window length (so only the encoders
+   differ) and, separately, from each run's own deterministic policy;
+2. encodes each full window (the run's k) with the run's encoder, as the
+   deployed context node does, and averages the latents per task;
 3. computes the Spearman rank correlation between the pairwise L2 distances of
    the task latents and the pairwise |c_i - c_j| (55 pairs), and, as a
    sample-level check, over random pairs of single windows from different
    tasks.
 
-Writes repro/results/figure4_spearman.{csv,md,png}.
+Writes repro/results/<name>.{csv,md,png} (--name, default figure4_spearman), with
+the mean +- standard error over runs of each method.
 
     PYTHONPATH=. python repro/figure4_spearman.py --train-minutes 20
-    PYTHONPATH=. python repro/figure4_spearman.py --runs runs/fig4-cheetah-alpha1.0 \
-        runs/fig4-cheetah-alpha0.0          # analyse existing runs
+    PYTHONPATH=. python repro/figure4_spearman.py --name figure4_spearman_50k \
+        --runs runs/cv0-zeus-s1 runs/cv0-zeus-no-context-loss-s1 ...   # existing runs
 """
 
 from __future__ import annotations
@@ -37,19 +41,23 @@ from sim_node.env import ParamEnv
 from sim_node.families import get_family
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
+from zeus_ros.sweep_results import mean_sem
 
 FAMILY = 'cheetah-run-v0'
 RESULTS = Path(__file__).resolve().parent / 'results'
+# Figure 4's values, read off the paper's plot, for the two methods it shows.
+PAPER = {'zeus': 0.60, 'zeus-no-context-loss': 0.23}
+WINDOW_SOURCES = ('random policy', 'own policy')
 
 
-def windows_for(family, value, episodes, steps, seed, model=None):
-    """Full windows (rows, mask) along trajectories; random policy if model is None."""
+def windows_for(family, value, episodes, steps, seed, k, model=None):
+    """Full k-windows (rows, mask) along trajectories; random policy if model is None."""
     env = ParamEnv(family, value, seed=seed, episode_steps=steps)
     rng = np.random.default_rng(seed)
     out = []
     for e in range(episodes):
         obs = env.reset(seed=seed * 100 + e)
-        w = ContextWindow(5, env.obs_dim, env.action_dim)
+        w = ContextWindow(k, env.obs_dim, env.action_dim)
         for _ in range(steps):
             if model is None:
                 a = rng.uniform(-1, 1, env.action_dim)
@@ -66,10 +74,11 @@ def windows_for(family, value, episodes, steps, seed, model=None):
 
 
 def latents(model, wins):
-    rows = torch.from_numpy(np.stack([r for r, _ in wins]))
-    mask = torch.from_numpy(np.stack([m for _, m in wins]))
+    """Return the deployed latent of each window, in one batch."""
+    rows = torch.from_numpy(np.stack([r for r, _ in wins]).astype(np.float32))
+    mask = torch.from_numpy(np.stack([m for _, m in wins]).astype(bool))
     with torch.no_grad():
-        return model.psi(rows, mask).numpy()
+        return model.method.deployed_context(rows, mask, None).numpy()
 
 
 def spearman_tasks(values, task_latents):
@@ -105,84 +114,137 @@ def train_runs(minutes: float, seed: int) -> list[Path]:
     return runs
 
 
+def method_label(meta: dict) -> str:
+    """Name the method a run trained (zeus at alpha_psi = 0: the no-context-loss ablation)."""
+    method = meta['context']['method']
+    if method == 'zeus' and meta['config']['alpha_psi'] == 0:
+        return 'zeus-no-context-loss'
+    return method
+
+
+class RandomWindows:
+    """The uniform-random windows of every train task, built once per window length."""
+
+    def __init__(self, values, episodes, steps):
+        self.values, self.episodes, self.steps = values, episodes, steps
+        self._by_k: dict[int, list] = {}
+
+    def __call__(self, k: int) -> list:
+        if k not in self._by_k:
+            self._by_k[k] = [windows_for(FAMILY, v, self.episodes, self.steps, 7, k)
+                             for v in self.values]
+        return self._by_k[k]
+
+
+def analyse(run: Path, random_windows: RandomWindows) -> tuple[list[dict], tuple]:
+    """One row per window source for a run, and its random-policy plot data."""
+    model = InferenceModel.load(run, expected_family=FAMILY)
+    if model.needs_true_param or model.context_dim == 0:
+        raise SystemExit(f'{run}: {model.method_name} has no learned latent')
+    meta, values = model.metadata, random_windows.values
+    label, rows, plot = method_label(meta), [], None
+    for source in WINDOW_SOURCES:
+        wins = random_windows(model.k) if source == 'random policy' else [
+            windows_for(FAMILY, v, random_windows.episodes, random_windows.steps, 7,
+                        model.k, model) for v in values]
+        zs = [latents(model, w) for w in wins]
+        rho, learned, true = spearman_tasks(values, zs)
+        rows.append({'method': label, 'dir': run.name, 'seed': meta['seed'], 'k': model.k,
+                     'alpha_psi': meta['config']['alpha_psi'],
+                     'timesteps': meta['steps']['timestep'],
+                     'env_steps': meta['steps']['env_steps'], 'windows': source,
+                     'tasks': len(values), 'spearman_task_means': round(rho, 3),
+                     'spearman_window_pairs': round(spearman_samples(values, zs), 3),
+                     'paper': PAPER.get(label, '-')})
+        print(rows[-1], flush=True)
+        if source == 'random policy':
+            plot = (f'{label} ({run.name})', rho, learned, true)
+    return rows, plot
+
+
+def summary_lines(rows: list[dict]) -> list[str]:
+    """Per method: mean +- standard error over its runs, task means, each window source."""
+    lines = ['| method | runs | Spearman, random-policy windows | own-policy windows | '
+             'paper |', '|---|---|---|---|---|']
+    for label in dict.fromkeys(r['method'] for r in rows):
+        cells = []
+        for source in WINDOW_SOURCES:
+            vals = [r['spearman_task_means'] for r in rows
+                    if r['method'] == label and r['windows'] == source]
+            mean, sem = mean_sem(vals)
+            cells.append(f'{mean:.2f} +- {sem:.2f} ({", ".join(f"{v:.2f}" for v in vals)})')
+        lines.append(f'| {label} | {len(vals)} | {cells[0]} | {cells[1]} | '
+                     f'{PAPER.get(label, "-")} |')
+    return lines
+
+
+def write_markdown(path: Path, rows: list[dict], values, episodes: int, steps: int) -> None:
+    lines = ['# Figure 4 reproduction (cheetah-run-v0, Spearman of context vs true distances)',
+             '', f'Tasks: all {len(values)} train values of Table 3 ({values}); the paper '
+             "plots 8. Windows: full windows (each run's k) from "
+             f'{episodes} episodes x {steps} steps per task. Task-level: L2 '
+             'distance between per-task mean latents vs |c_i - c_j| over all task pairs. '
+             'Window-level: 5000 random pairs of single windows from different tasks.', '',
+             '| method | dir | seed | k | alpha_psi | timesteps (env steps) | windows '
+             '| Spearman (task means) | Spearman (window pairs) | paper |',
+             '|---|---|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        lines.append(f"| {r['method']} | {r['dir']} | {r['seed']} | {r['k']} | "
+                     f"{r['alpha_psi']} | {r['timesteps']} ({r['env_steps']}) | "
+                     f"{r['windows']} | {r['spearman_task_means']} | "
+                     f"{r['spearman_window_pairs']} | {r['paper']} |")
+    lines += ['', 'Per method, task means, mean +- standard error over runs (per run):', '',
+              *summary_lines(rows), '',
+              'With random-policy windows every encoder of one window length sees '
+              "identical inputs; with each run's own policy the states visited also differ "
+              'per task, which inflates the correlations. Single windows are dominated by '
+              'state variation; the per-task averages are what Figure 4 ranks.']
+    path.write_text('\n'.join(lines) + '\n')
+
+
+def write_plot(path: Path, plots: list) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, len(plots), figsize=(4.5 * len(plots), 4), squeeze=False)
+    for ax, (label, rho, learned, true) in zip(axes[0], plots, strict=True):
+        ax.scatter(true, learned, s=12)
+        ax.set_xlabel('|c_i - c_j| (torso length, m)')
+        ax.set_ylabel('||psi_i - psi_j||')
+        ax.set_title(f'{label}: Spearman {rho:.2f}', fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--runs', nargs='+', type=Path, default=None,
-                   help='existing run dirs in pairs (with context loss, without), one pair '
-                        'per seed')
+                   help='existing run (or checkpoint) dirs of cheetah-run-v0, any methods '
+                        'with a learned latent; without it, trains the two-run pair')
+    p.add_argument('--name', default='figure4_spearman',
+                   help='output stem under repro/results/ (.csv, .md, .png)')
     p.add_argument('--train-minutes', type=float, default=20.0)
     p.add_argument('--seed', type=int, default=1)
     p.add_argument('--episodes', type=int, default=2)
     p.add_argument('--steps', type=int, default=300)
     args = p.parse_args(argv)
     runs = args.runs or train_runs(args.train_minutes, args.seed)
-    if len(runs) % 2:
-        raise SystemExit('--runs takes pairs: with context loss, then without')
     values = list(get_family(FAMILY).train)
-    random_wins = [windows_for(FAMILY, v, args.episodes, args.steps, 7) for v in values]
-    rows, plots = [], []
-    for n, run in enumerate(runs):
-        label = 'with context loss' if n % 2 == 0 else 'no context loss'
-        model = InferenceModel.load(run, expected_family=FAMILY)
-        meta = model.metadata
-        for source in ('random policy', 'own policy'):
-            wins = random_wins if source == 'random policy' else [
-                windows_for(FAMILY, v, args.episodes, args.steps, 7, model) for v in values]
-            zs = [latents(model, w) for w in wins]
-            rho, learned, true = spearman_tasks(values, zs)
-            rho_s = spearman_samples(values, zs)
-            rows.append({'run': label, 'dir': run.name, 'alpha_psi': meta['config']['alpha_psi'],
-                         'timesteps': meta['steps']['timestep'],
-                         'env_steps': meta['steps']['env_steps'], 'windows': source,
-                         'tasks': len(values), 'spearman_task_means': round(rho, 3),
-                         'spearman_window_pairs': round(rho_s, 3),
-                         'paper': 0.60 if meta['config']['alpha_psi'] > 0 else 0.23})
-            print(rows[-1], flush=True)
-            if source == 'random policy' and n < 2:
-                plots.append((label, rho, learned, true))
+    random_windows = RandomWindows(values, args.episodes, args.steps)
+    rows, plots, plotted = [], [], set()
+    for run in runs:
+        found, plot = analyse(run, random_windows)
+        rows += found
+        if found[0]['method'] not in plotted:   # the first run of each method
+            plotted.add(found[0]['method'])
+            plots.append(plot)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS / 'figure4_spearman.csv', 'w', newline='') as f:
+    with open(RESULTS / f'{args.name}.csv', 'w', newline='') as f:
         w = csv.DictWriter(f, list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    lines = ['# Figure 4 reproduction (cheetah-run-v0, Spearman of context vs true distances)',
-             '', f'Tasks: all {len(values)} train values of Table 3 ({values}); the paper '
-             'plots 8. Windows: full k=5 windows from '
-             f'{args.episodes} episodes x {args.steps} steps per task. Task-level: L2 '
-             'distance between per-task mean latents vs |c_i - c_j| over all task pairs. '
-             'Window-level: 5000 random pairs of single windows from different tasks.', '',
-             '| run | dir | alpha_psi | timesteps (env steps) | windows '
-             '| Spearman (task means) | Spearman (window pairs) | paper |',
-             '|---|---|---|---|---|---|---|---|']
-    for r in rows:
-        lines.append(f"| {r['run']} | {r['dir']} | {r['alpha_psi']} | {r['timesteps']} "
-                     f"({r['env_steps']}) | {r['windows']} | {r['spearman_task_means']} | "
-                     f"{r['spearman_window_pairs']} | {r['paper']} |")
-    lines += ['', f'Mean over the {len(runs) // 2} seed(s), random-policy windows, task means:']
-    for label in ('with context loss', 'no context loss'):
-        vals = [r['spearman_task_means'] for r in rows
-                if r['run'] == label and r['windows'] == 'random policy']
-        lines.append(f'- {label}: {np.mean(vals):.3f} (per seed {vals})')
-    lines += ['', 'Notes: both arms of a seed trained concurrently with the cpu profile '
-              '(one torch thread each); seed 1 under a wall-clock limit (step counts differ '
-              'slightly), seed 2 for a fixed 12000 timesteps; all far shorter than the paper '
-              '(1.2M steps). With '
-              "random-policy windows both encoders see identical inputs; with each run's own "
-              'policy the states visited also differ per task, which inflates both '
-              'correlations. Single windows are dominated by state variation (window-level '
-              'correlation near 0); only the per-task averages rank like the true lengths.']
-    (RESULTS / 'figure4_spearman.md').write_text('\n'.join(lines) + '\n')
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-    for ax, (label, rho, learned, true) in zip(axes, plots, strict=True):
-        ax.scatter(true, learned, s=12)
-        ax.set_xlabel('|c_i - c_j| (torso length, m)')
-        ax.set_ylabel('||psi_i - psi_j||')
-        ax.set_title(f'{label}: Spearman {rho:.2f}')
-    fig.tight_layout()
-    fig.savefig(RESULTS / 'figure4_spearman.png', dpi=80)
+    write_markdown(RESULTS / f'{args.name}.md', rows, values, args.episodes, args.steps)
+    write_plot(RESULTS / f'{args.name}.png', plots)
 
 
 if __name__ == '__main__':

@@ -50,8 +50,12 @@ PAPER = {'zeus': 0.60, 'zeus-no-context-loss': 0.23}
 WINDOW_SOURCES = ('random policy', 'own policy')
 
 
-def windows_for(family, value, episodes, steps, seed, k, model=None):
-    """Full k-windows (rows, mask) along trajectories; random policy if model is None."""
+def windows_for(family, value, episodes, steps, seed, model=None, k=None):
+    """Full k-windows (rows, mask) along trajectories; random policy if model is None.
+
+    k: the window length (default: the model's, or 5 without a model).
+    """
+    k = k or (model.k if model is not None else 5)
     env = ParamEnv(family, value, seed=seed, episode_steps=steps)
     rng = np.random.default_rng(seed)
     out = []
@@ -131,7 +135,7 @@ class RandomWindows:
 
     def __call__(self, k: int) -> list:
         if k not in self._by_k:
-            self._by_k[k] = [windows_for(FAMILY, v, self.episodes, self.steps, 7, k)
+            self._by_k[k] = [windows_for(FAMILY, v, self.episodes, self.steps, 7, k=k)
                              for v in self.values]
         return self._by_k[k]
 
@@ -145,8 +149,8 @@ def analyse(run: Path, random_windows: RandomWindows) -> tuple[list[dict], tuple
     label, rows, plot = method_label(meta), [], None
     for source in WINDOW_SOURCES:
         wins = random_windows(model.k) if source == 'random policy' else [
-            windows_for(FAMILY, v, random_windows.episodes, random_windows.steps, 7,
-                        model.k, model) for v in values]
+            windows_for(FAMILY, v, random_windows.episodes, random_windows.steps, 7, model)
+            for v in values]
         zs = [latents(model, w) for w in wins]
         rho, learned, true = spearman_tasks(values, zs)
         rows.append({'method': label, 'dir': run.name, 'seed': meta['seed'], 'k': model.k,

@@ -273,8 +273,17 @@ def _f(x, digits=2):
 # -- report -------------------------------------------------------------------------
 def render(all_data: dict, runs: list[str], name: str = NAME) -> tuple[list[str], list[dict]]:
     """Markdown lines and CSV rows."""
-    lines, csv_rows = [], []
-    summary_rows = []
+    summary_rows, csv_rows = _summaries(all_data, runs)
+    lines = [*_header_section(all_data, runs), *_per_seed_section(summary_rows),
+             *_root_section(all_data, runs), *_replay_section(all_data, runs),
+             *_relabel_section(summary_rows),
+             *_per_target_section(all_data, runs, csv_rows, name)]
+    return lines, csv_rows
+
+
+def _summaries(all_data: dict, runs: list[str]) -> tuple[list[tuple], list[dict]]:
+    """Per run and policy (name, policy, summary, R^2, relabelled); CSV rows per target."""
+    summary_rows, csv_rows = [], []
     for run in runs:
         data = all_data[run]
         seed_name = Path(run).name
@@ -290,110 +299,133 @@ def render(all_data: dict, runs: list[str], name: str = NAME) -> tuple[list[str]
                 csv_rows.append({'run': seed_name, 'policy': policy, 'target': target,
                                  **{k: round(v, 4) if isinstance(v, float) else v
                                     for k, v in per.items()}})
-    lines += ['# Target velocity from rewards: identified up to its sign? (cheetah-run-v1, '
-              'zeus-id)', '',
-              'Command and method: the docstring of '
-              '`repro/target_velocity_identifiability.py`. Checkpoints: '
-              + ', '.join(f'`{r}`' for r in runs) + '. Every interpolation target '
-              "(0.4 ... 2.9 m/s), episode seeds 0 and 1 (the evaluator's), 1000 steps, "
-              f'k = 25; figures over the steps whose window is full. d read from the reward '
-              f'equals |v - T| to {all_data[runs[0]]["check"]:.1e} m/s (largest deviation '
-              'over the episodes of the first checkpoint).', '',
-              '`deterministic`: tanh(mu), what the evaluator and the adaptation report '
-              "run. `sampled`: actions sampled from the same actor (the trainer's "
-              'collection policy, so windows like those of the replay). '
-              f'Wrong: |estimate - T| > {WRONG} m/s. Mirror: 2 vbar - T, vbar the mean speed '
-              'of the window psi read. Upper / lower root: vbar + dbar / vbar - dbar (one of '
-              'them is T, the other the mirror; "upper" is T when the policy runs below '
-              'the target).', '',
-              '## Per seed and policy (all interpolation targets)', '',
-              '| run | policy | mean \\|v - T\\| | steps v > T | speed sd in window (m/s) '
-              '| \\|mirror - T\\| | est. R^2 for T | R^2 for upper root | R^2 for lower root '
-              '| R^2 for vbar | mean \\|est - T\\| | wrong | wrong nearer mirror '
-              '| nearer upper root |',
-              '|' + '---|' * 14]
+    return summary_rows, csv_rows
+
+
+def _header_section(all_data: dict, runs: list[str]) -> list[str]:
+    return ['# Target velocity from rewards: identified up to its sign? (cheetah-run-v1, '
+            'zeus-id)', '',
+            'Command and method: the docstring of '
+            '`repro/target_velocity_identifiability.py`. Checkpoints: '
+            + ', '.join(f'`{r}`' for r in runs) + '. Every interpolation target '
+            "(0.4 ... 2.9 m/s), episode seeds 0 and 1 (the evaluator's), 1000 steps, "
+            f'k = 25; figures over the steps whose window is full. d read from the reward '
+            f'equals |v - T| to {all_data[runs[0]]["check"]:.1e} m/s (largest deviation '
+            'over the episodes of the first checkpoint).', '',
+            '`deterministic`: tanh(mu), what the evaluator and the adaptation report '
+            "run. `sampled`: actions sampled from the same actor (the trainer's "
+            'collection policy, so windows like those of the replay). '
+            f'Wrong: |estimate - T| > {WRONG} m/s. Mirror: 2 vbar - T, vbar the mean speed '
+            'of the window psi read. Upper / lower root: vbar + dbar / vbar - dbar (one of '
+            'them is T, the other the mirror; "upper" is T when the policy runs below '
+            'the target).', '']
+
+
+def _per_seed_section(summary_rows: list[tuple]) -> list[str]:
+    lines = ['## Per seed and policy (all interpolation targets)', '',
+             '| run | policy | mean \\|v - T\\| | steps v > T | speed sd in window (m/s) '
+             '| \\|mirror - T\\| | est. R^2 for T | R^2 for upper root | R^2 for lower root '
+             '| R^2 for vbar | mean \\|est - T\\| | wrong | wrong nearer mirror '
+             '| nearer upper root |',
+             '|' + '---|' * 14]
     for seed_name, policy, s, r2, _ in summary_rows:
         lines.append(f'| {seed_name} | {policy} | {_f(s["speed_error"])} | '
                      f'{s["frac_over"]:.0%} | {_f(s["window_sd"], 3)} | {_f(s["mirror_gap"])} | '
                      f'{_f(r2["T"])} | {_f(r2["upper"])} | {_f(r2["lower"])} | '
                      f'{_f(r2["vbar"])} | {_f(s["est_error"])} | {s["frac_wrong"]:.0%} | '
                      f'{_f(s["wrong_near_mirror"] * 100, 0)} % | {s["frac_upper"]:.0%} |')
-    lines += ['', '## Which root the estimate takes', '',
-              'Least squares est = a + b vbar + c dbar over the windows whose mean speed is '
-              'below the target and over those above it. Identified: c = +1 below and -1 '
-              'above; a prior "T = v + d": +1 on both sides; sign not read: c near 0 on both '
-              '(the mean of the two roots). Blank: fewer than 50 such windows.', '',
-              '| run | policy | below T: b | below T: c | above T: b | above T: c |',
-              '|' + '---|' * 6]
+    return lines
+
+
+def _root_section(all_data: dict, runs: list[str]) -> list[str]:
+    lines = ['', '## Which root the estimate takes', '',
+             'Least squares est = a + b vbar + c dbar over the windows whose mean speed is '
+             'below the target and over those above it. Identified: c = +1 below and -1 '
+             'above; a prior "T = v + d": +1 on both sides; sign not read: c near 0 on both '
+             '(the mean of the two roots). Blank: fewer than 50 such windows.', '',
+             '| run | policy | below T: b | below T: c | above T: b | above T: c |',
+             '|' + '---|' * 6]
     for run in runs:
         for policy in POLICIES:
             tables = [t for (p, _, _), t in all_data[run]['steps'].items() if p == policy]
             w = sign_weights(tables)
             lines.append(f'| {Path(run).name} | {policy} | {_f(w["under"][0])} | '
                          f'{_f(w["under"][1])} | {_f(w["over"][0])} | {_f(w["over"][1])} |')
-    lines += ['', '## Replay-like windows', '',
-              "The replay holds every transition of the run (capacity 400k = the run's "
-              '400k environment steps), the first 80k from uniform random actions (10000 '
-              'timesteps x 8 train tasks). Here: one episode (seed 0) per TRAIN target with '
-              "the actor's sampled actions and with uniform random actions, against the "
-              "interpolation episodes above. MSE in the decoder loss's units (estimate and "
-              'target divided by the train range, 3 m/s); the last decoder loss of the '
-              'training log (replay batches) for comparison.', '',
-              '| run | decoder loss in training (replay) | interp., deterministic: MSE / R^2 '
-              '| train targets, sampled: MSE / R^2 / steps v > T | train targets, random '
-              'actions: MSE / R^2 / steps v > T / speed sd in window |', '|' + '---|' * 5]
+    return lines
+
+
+def _replay_section(all_data: dict, runs: list[str]) -> list[str]:
+    lines = ['', '## Replay-like windows', '',
+             "The replay holds every transition of the run (capacity 400k = the run's "
+             '400k environment steps), the first 80k from uniform random actions (10000 '
+             'timesteps x 8 train tasks). Here: one episode (seed 0) per TRAIN target with '
+             "the actor's sampled actions and with uniform random actions, against the "
+             "interpolation episodes above. MSE in the decoder loss's units (estimate and "
+             'target divided by the train range, 3 m/s); the last decoder loss of the '
+             'training log (replay batches) for comparison.', '',
+             '| run | decoder loss in training (replay) | interp., deterministic: MSE / R^2 '
+             '| train targets, sampled: MSE / R^2 / steps v > T | train targets, random '
+             'actions: MSE / R^2 / steps v > T / speed sd in window |', '|' + '---|' * 5]
     for run in runs:
         data = all_data[run]
-        scale = data['scale']
         interp = [t for (p, _, _), t in data['steps'].items() if p == 'deterministic']
-        cells = []
-        for policy in REPLAY_LIKE:
-            tables = [t for (p, _), t in data['train'].items() if p == policy]
-            sm = summarise(tables)
-            cell = (f'{normalised_mse(tables, scale):.3f} / {_f(r2_against(tables)["T"])} / '
-                    f'{sm["frac_over"]:.0%}')
-            if policy == 'random':
-                cell += f' / {_f(sm["window_sd"], 3)}'
-            cells.append(cell)
+        cells = [_replay_cell(data, policy) for policy in REPLAY_LIKE]
         lines.append(f'| {Path(run).name} | {_f(data.get("decoder_loss"), 3)} | '
-                     f'{normalised_mse(interp, scale):.3f} / {_f(r2_against(interp)["T"])} | '
-                     + ' | '.join(cells) + ' |')
-    lines += ['', "## Relabelled rewards (same windows, rewards recomputed for T' = 0, 0.25, "
-              '..., 3 m/s)', '',
-              f'Windows every {RELABEL_EVERY} steps of episode seed 0 at every target. '
-              "Above / below: T' more than 0.25 m/s above / below the window's mean speed.",
-              '', "| run | policy | windows x T' | mean \\|est - T'\\|, T' above vbar "
-              "| same, T' below vbar | below: estimate nearer the upper root "
-              "| R^2 for T' | for upper root | for lower root |", '|' + '---|' * 9]
+                     f'{normalised_mse(interp, data["scale"]):.3f} / '
+                     f'{_f(r2_against(interp)["T"])} | ' + ' | '.join(cells) + ' |')
+    return lines
+
+
+def _replay_cell(data: dict, policy: str) -> str:
+    tables = [t for (p, _), t in data['train'].items() if p == policy]
+    sm = summarise(tables)
+    cell = (f'{normalised_mse(tables, data["scale"]):.3f} / {_f(r2_against(tables)["T"])} / '
+            f'{sm["frac_over"]:.0%}')
+    return cell + (f' / {_f(sm["window_sd"], 3)}' if policy == 'random' else '')
+
+
+def _relabel_section(summary_rows: list[tuple]) -> list[str]:
+    lines = ['', "## Relabelled rewards (same windows, rewards recomputed for T' = 0, 0.25, "
+             '..., 3 m/s)', '',
+             f'Windows every {RELABEL_EVERY} steps of episode seed 0 at every target. '
+             "Above / below: T' more than 0.25 m/s above / below the window's mean speed.",
+             '', "| run | policy | windows x T' | mean \\|est - T'\\|, T' above vbar "
+             "| same, T' below vbar | below: estimate nearer the upper root "
+             "| R^2 for T' | for upper root | for lower root |", '|' + '---|' * 9]
     for seed_name, policy, _, _, rel in summary_rows:
         lines.append(f'| {seed_name} | {policy} | {rel["n"]} | {_f(rel["err_above"])} '
                      f'({rel["n_above"]}) | {_f(rel["err_below"])} ({rel["n_below"]}) | '
                      f'{_f(rel["below_near_upper"] * 100, 0)} % | {_f(rel["r2_T"])} | '
                      f'{_f(rel["r2_upper"])} | {_f(rel["r2_lower"])} |')
-    lines += ['', '## Per target', '',
-              f'CSV: `{name}.csv` (same columns and more).', '']
+    return lines
+
+
+def _per_target_section(all_data: dict, runs: list[str], csv_rows: list[dict],
+                        name: str) -> list[str]:
+    lines = ['', '## Per target', '', f'CSV: `{name}.csv` (same columns and more).', '']
     for run in runs:
         seed_name = Path(run).name
         lines += [f'### {seed_name}', '',
                   '| policy | T | mean v | steps v > T | mean estimate (sd) | mean 2 vbar - T '
                   '| wrong | wrong nearer mirror | nearer upper root | speed sd in window |',
                   '|' + '---|' * 10]
-        for row in csv_rows:
-            if row['run'] != seed_name:
-                continue
-            per = summarise([t for (p, v, _), t in all_data[run]['steps'].items()
-                             if p == row['policy'] and v == row['target']])
-            mirror = np.mean(np.concatenate(
-                [2 * t['vbar'] - t['target'] for (p, v, _), t in all_data[run]['steps'].items()
-                 if p == row['policy'] and v == row['target']]))
-            lines.append(f'| {row["policy"]} | {row["target"]:g} | {_f(per["mean_speed"])} | '
-                         f'{per["frac_over"]:.0%} | {_f(per["mean_estimate"])} '
-                         f'({_f(per["estimate_sd"])}) | {_f(mirror)} | '
-                         f'{per["frac_wrong"]:.0%} | '
-                         f'{_f(per["wrong_near_mirror"] * 100, 0)} % | '
-                         f'{per["frac_upper"]:.0%} | {_f(per["window_sd"], 3)} |')
+        lines += [_per_target_row(all_data[run], row) for row in csv_rows
+                  if row['run'] == seed_name]
         lines.append('')
-    return lines, csv_rows
+    return lines
+
+
+def _per_target_row(data: dict, row: dict) -> str:
+    tables = [t for (p, v, _), t in data['steps'].items()
+              if p == row['policy'] and v == row['target']]
+    per = summarise(tables)
+    mirror = np.mean(np.concatenate([2 * t['vbar'] - t['target'] for t in tables]))
+    return (f'| {row["policy"]} | {row["target"]:g} | {_f(per["mean_speed"])} | '
+            f'{per["frac_over"]:.0%} | {_f(per["mean_estimate"])} '
+            f'({_f(per["estimate_sd"])}) | {_f(mirror)} | '
+            f'{per["frac_wrong"]:.0%} | '
+            f'{_f(per["wrong_near_mirror"] * 100, 0)} % | '
+            f'{per["frac_upper"]:.0%} | {_f(per["window_sd"], 3)} |')
 
 
 # Written from the results of the three checkpoints named in the docstring (final, 50k

@@ -38,7 +38,7 @@ def training_wall_time(run: Path) -> float | None:
     return float(rows[-1]['wall_s']) if rows else None
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('run', type=Path)
     parser.add_argument('dest', type=Path)
@@ -48,17 +48,35 @@ def main(argv=None) -> int:
     parser.add_argument('--note', default='', help='a line for the record')
     parser.add_argument('--no-report', action='store_true',
                         help='skip the adaptation report (zeus_ros.adaptation)')
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     args.dest.mkdir(parents=True, exist_ok=True)
     for name in SHIPPED:
         shutil.copyfile(args.run / 'checkpoint' / name, args.dest / name)
     model = InferenceModel.load(args.dest)
+    record = build_record(args, model)
+    if not args.no_report:
+        report = build_report(str(args.dest), ReportConfig(episodes=args.episodes))
+        (args.dest / 'adaptation.json').write_text(report.to_json())
+        record['adaptation_report'] = 'adaptation.json'
+    (args.dest / 'record.json').write_text(json.dumps(record, indent=2))
+    lines = record_lines(args, model, record)
+    (args.dest / 'RECORD.md').write_text('\n'.join(lines) + '\n')
+    print('\n'.join(lines))
+    return 0
+
+
+def build_record(args: argparse.Namespace, model: InferenceModel) -> dict:
+    """Evaluate the shipped copy on every split and gather what the record says of it."""
     spec = get_sim_family(model.family)
     started = time.monotonic()
     results = {split: evaluate(model, spec.split(split), args.episodes, args.seed)
                for split in SPLITS if spec.split(split)}
     meta = model.metadata
-    record = {
+    return {
         'family': model.family, 'method': model.method_name, 'command': args.command,
         'seed': meta.get('seed'),
         'steps': meta['steps'],
@@ -69,17 +87,17 @@ def main(argv=None) -> int:
         'size_bytes': {n: (args.dest / n).stat().st_size for n in SHIPPED},
         'note': args.note,
     }
-    if not args.no_report:
-        report = build_report(str(args.dest), ReportConfig(episodes=args.episodes))
-        (args.dest / 'adaptation.json').write_text(report.to_json())
-        record['adaptation_report'] = 'adaptation.json'
-    (args.dest / 'record.json').write_text(json.dumps(record, indent=2))
+
+
+def record_lines(args: argparse.Namespace, model: InferenceModel, record: dict) -> list[str]:
+    """RECORD.md: the run's provenance, then a table per split."""
+    spec = get_sim_family(model.family)
     lines = [f'# {args.dest.name}', '', f'- family: `{model.family}` '
              f'({", ".join(spec.param_names)}), method `{record["method"]}`, '
              f'seed {record["seed"]}, '
              f'alpha_psi = {record["alpha_psi"]}',
              f'- command: `{args.command}`',
-             f'- steps: {meta["steps"]}',
+             f'- steps: {record["steps"]}',
              f'- training wall time: {record["training_wall_s"]:.0f} s on a 2-core CPU'
              if record['training_wall_s'] else '- training wall time: unknown',
              '- files: ' + ', '.join(f'{n} ({s / 1e3:.0f} kB)'
@@ -88,10 +106,7 @@ def main(argv=None) -> int:
              f'episode(s) per value, seeds {args.seed}..{args.seed + args.episodes - 1}', '']
     if args.note:
         lines += [args.note, '']
-    lines += _result_tables(results)
-    (args.dest / 'RECORD.md').write_text('\n'.join(lines) + '\n')
-    print('\n'.join(lines))
-    return 0
+    return lines + _result_tables(record['results'])
 
 
 def _result_tables(results: dict) -> list[str]:

@@ -33,12 +33,9 @@ class _Timed:
             self.total += time.perf_counter() - t
 
 
-def run(family: str, profile: str, timesteps: int, warmup: int,
-        threads: int | None = None, method: str = 'zeus', extra: tuple = ()) -> dict:
-    """Measure `timesteps` steady-state timesteps; return the figures.
-
-    `extra`: more `KEY=VALUE` config overrides (e.g. another batch size).
-    """
+def warmed_trainer(family: str, profile: str, warmup: int, threads: int | None,
+                   method: str, extra: tuple) -> Trainer:
+    """Build a trainer whose replay holds `warmup` timesteps of uniform exploration."""
     out = Path(tempfile.mkdtemp(prefix='zeus_bench_'))
     overrides = [f'init_steps={warmup}', 'replay_capacity=100000', *extra]
     if threads is not None:
@@ -47,12 +44,16 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
                                       '--method', method, '--out', str(out),
                                       '--set', *overrides])
     tr = Trainer(RunArgs.from_cli(args))
-    cfg = tr.cfg
     while tr.timestep < warmup:  # uniform exploration fills the buffer
         tr.collect()
         tr.timestep += 1
     for _ in range(20):  # warm up torch
         tr.agent.update(tr.replay.sample(tr.batch_size))
+    return tr
+
+
+def instrument(tr: Trainer) -> tuple[list, '_Timed']:
+    """Time every environment's step and the agent's act; silence episode logs."""
     sims = [_Timed(env.step) for env in tr.envs]
     for env, timed in zip(tr.envs, sims, strict=True):
         env.step = timed
@@ -60,6 +61,17 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
     tr.agent.act = act
     tr.logs.episode = lambda trainer, task: None
     tr.agent.timers = {}
+    return sims, act
+
+
+def run(family: str, profile: str, timesteps: int, warmup: int,
+        threads: int | None = None, method: str = 'zeus', extra: tuple = ()) -> dict:
+    """Measure `timesteps` steady-state timesteps; return the figures.
+
+    `extra`: more `KEY=VALUE` config overrides (e.g. another batch size).
+    """
+    tr = warmed_trainer(family, profile, warmup, threads, method, extra)
+    sims, act = instrument(tr)
     sample_t = collect_t = 0.0
     env0 = tr.env_steps
     start = time.perf_counter()
@@ -80,7 +92,7 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
              'windows+replay add': collect_t - sim - act.total, 'replay sample': sample_t}
     split.update({f'update/{k}': v for k, v in tr.agent.timers.items()})
     return {'family': family, 'profile': profile, 'tasks': len(tr.envs),
-            'batch': tr.batch_size, 'hidden': cfg.hidden_dim, 'threads': cfg.num_threads,
+            'batch': tr.batch_size, 'hidden': tr.cfg.hidden_dim, 'threads': tr.cfg.num_threads,
             'timesteps': timesteps, 'env_steps': env_steps, 'seconds': total,
             'env_steps_per_s': env_steps / total, 'split': split}
 

@@ -120,8 +120,7 @@ def main(argv=None) -> int:
     offset, scale = model.param_offset[0], model.param_scale[0]
     x_fit, y_fit = window_set(model, spec.train, FIT_SEEDS, args.episodes, args.steps)
     x_test, y_test = window_set(model, held_out, TEST_SEED, args.episodes, args.steps)
-    mean, sd = x_fit.reshape(-1, x_fit.shape[-1]).mean(0), x_fit.reshape(
-        -1, x_fit.shape[-1]).std(0) + 1e-6
+    mean, sd = x_fit.mean((0, 1)), x_fit.std((0, 1)) + 1e-6   # per row input
     x_fit, x_test = (x_fit - mean) / sd, (x_test - mean) / sd
     estimates = {}
     for name, train in readers(args.epochs).items():

@@ -288,7 +288,7 @@ def _summaries(all_data: dict, runs: list[str]) -> tuple[list[tuple], list[dict]
         data = all_data[run]
         seed_name = Path(run).name
         for policy in POLICIES:
-            tables = [t for (p, _, _), t in data['steps'].items() if p == policy]
+            tables = _policy_tables(data, policy)
             s, r2 = summarise(tables), r2_against(tables)
             rel = relabel_summary([row for (p, _), rows in data['relabel'].items()
                                    if p == policy for row in rows])
@@ -300,6 +300,11 @@ def _summaries(all_data: dict, runs: list[str]) -> tuple[list[tuple], list[dict]
                                  **{k: round(v, 4) if isinstance(v, float) else v
                                     for k, v in per.items()}})
     return summary_rows, csv_rows
+
+
+def _policy_tables(data: dict, policy: str) -> list[dict]:
+    """Return the step tables of every interpolation episode run with `policy`."""
+    return [t for (p, _, _), t in data['steps'].items() if p == policy]
 
 
 def _header_section(all_data: dict, runs: list[str]) -> list[str]:
@@ -347,7 +352,7 @@ def _root_section(all_data: dict, runs: list[str]) -> list[str]:
              '|' + '---|' * 6]
     for run in runs:
         for policy in POLICIES:
-            tables = [t for (p, _, _), t in all_data[run]['steps'].items() if p == policy]
+            tables = _policy_tables(all_data[run], policy)
             w = sign_weights(tables)
             lines.append(f'| {Path(run).name} | {policy} | {_f(w["under"][0])} | '
                          f'{_f(w["under"][1])} | {_f(w["over"][0])} | {_f(w["over"][1])} |')

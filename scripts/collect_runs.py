@@ -31,7 +31,7 @@ WEIGHT_FILES = (MODEL_FILE, METADATA_FILE)   # what InferenceModel.load reads
 
 def collect(run: Path, into: Path, with_weights: bool = False) -> list[str]:
     """Copy one run's result files into `into/<run name>`; return what was copied."""
-    meta_path = run / 'checkpoint' / 'metadata.json'
+    meta_path = run / 'checkpoint' / METADATA_FILE
     if not meta_path.exists():
         raise FileNotFoundError(f'{run} has no checkpoint/metadata.json')
     target = into / run.name

@@ -50,6 +50,11 @@ def test_bad_sweep_file_is_refused(tmp_path):
     bad.write_text('name: x\nfamilies: [nope]\nmethods: [sac]\nseeds: [1]\nsteps: 5\n')
     with pytest.raises(ValueError, match='nope'):
         SweepConfig.load(bad)
+    for override, error in (('{nope: 1}', 'nope'), ('{train_swap_prob: 2.0}', 'train_swap_prob')):
+        bad.write_text('name: x\nfamilies: [finger-spin-v0]\nmethods: [sac]\nseeds: [1]\n'
+                       f'steps: 5\noverrides: {override}\n')
+        with pytest.raises(ValueError, match=error):
+            SweepConfig.load(bad)
 
 
 def test_killed_sweep_resumes_its_trials_and_gathers_results(tmp_path):

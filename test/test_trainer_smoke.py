@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from zeus_ros import evaluate, train
+from zeus_ros.core.config import ZeusConfig
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 
@@ -186,6 +187,26 @@ def test_train_swaps_move_tasks_between_training_values_and_the_replay_follows(t
         still.collect()
         still.timestep += 1
     assert [env.param_values for env in still.envs] == list(still.values)
+
+
+def test_downward_train_swaps_only_ever_lower_a_tasks_value(tmp_path):
+    overrides = train.parse_overrides([*TINY, 'train_swap_prob=0.5',
+                                       'train_swap_direction=down'])
+    trainer = train.Trainer(train.RunArgs(out=tmp_path / 'run', family=FAMILY, method='oracle',
+                                          steps=0, overrides=overrides))
+    lowest = min(trainer.values)
+    before = [env.param_values for env in trainer.envs]
+    moved = 0
+    for _ in range(20):
+        trainer.collect()
+        trainer.timestep += 1
+        after = [env.param_values for env in trainer.envs]
+        assert all(a <= b for a, b in zip(after, before, strict=True))
+        moved += sum(a != b for a, b in zip(after, before, strict=True))
+        before = after
+    assert moved > 0 and min(before) == lowest
+    with pytest.raises(ValueError, match='train_swap_direction'):
+        ZeusConfig(train_swap_direction='up').validate()
 
 
 def test_a_task_with_a_success_flag_logs_its_success_rate(tmp_path, capsys):

@@ -39,6 +39,7 @@ import sys
 import yaml
 
 from sim_node.families import SIM_FAMILIES
+from zeus_ros.core.config import ZeusConfig
 from zeus_ros.core.methods import METHODS
 
 TRAIN_KEYS = ('eval_every', 'eval_episodes', 'eval_max_steps', 'checkpoint_every',
@@ -75,6 +76,10 @@ class SweepConfig:
             raise ValueError(f'unknown or missing families/methods/seeds: {bad}')
         if set(cfg.train) - set(TRAIN_KEYS):
             raise ValueError(f'train: keys must be among {TRAIN_KEYS}')
+        try:   # refuse a bad override now, not hours into the grid
+            ZeusConfig(**cfg.overrides).validate()
+        except TypeError as error:
+            raise ValueError(f'overrides: {error}') from None
         return cfg
 
     @property

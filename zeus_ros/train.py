@@ -291,9 +291,16 @@ class Trainer:
             return   # no draw: runs without swaps keep the random stream they always had
         jumps = self.rng.random(len(self.envs)) < self.cfg.train_swap_prob
         for env, jump in zip(self.envs, jumps, strict=True):
-            if jump:
-                others = [v for v in self.values if v != tuple(env.param_values)]
-                env.apply_prepared(env.prepare_values(others[self.rng.integers(len(others))]))
+            targets = self._swap_targets(tuple(env.param_values)) if jump else []
+            if targets:
+                env.apply_prepared(env.prepare_values(targets[self.rng.integers(len(targets))]))
+
+    def _swap_targets(self, current: tuple) -> list[tuple]:
+        """List the training values a task at `current` may jump to (`train_swap_direction`)."""
+        others = [v for v in self.values if v != current]
+        if self.cfg.train_swap_direction == 'down':
+            return [v for v in others if v < current]   # tuple order: by the first parameter
+        return others
 
     def _step_task(self, i: int, env: ParamEnv, action: np.ndarray) -> None:
         res = env.step(action)

@@ -99,6 +99,10 @@ class ZeusConfig:
         0.0, 'Per timestep and training task, the probability that its parameter jumps to '
         'another training value mid-episode, window kept (a live swap in training: windows '
         'that straddle a change, e.g. a target below the running speed). 0 = the paper.')
+    train_swap_direction: str = _f(
+        'any', "Where a training swap goes: 'any' other training value, or 'down' to a "
+        "lower one only (none from the lowest): for target velocity, a target below the "
+        "speed the robot is running at, the windows where |v - target| reads v - target.")
     reward_in_observation: bool = _f(
         False, 'Append the reward of the transition into each state to the observation '
         '(appendix B.2.1, for reward-varying families: preset there).')
@@ -126,6 +130,8 @@ class ZeusConfig:
             raise ValueError('id_weight must be >= 0')
         if not 0.0 <= self.train_swap_prob <= 1.0:
             raise ValueError('train_swap_prob must be in [0, 1]')
+        if self.train_swap_direction not in ('any', 'down'):
+            raise ValueError("train_swap_direction must be 'any' or 'down'")
         if self.method == 'zeus-no-context-loss' and self.alpha_psi != 0:
             raise ValueError('zeus-no-context-loss is the alpha_psi = 0 ablation; '
                              f'got alpha_psi {self.alpha_psi}')

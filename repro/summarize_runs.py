@@ -1,12 +1,14 @@
 """Tabulate committed adaptation reports over training seeds (mean +- standard error).
 
-    PYTHONPATH=. python repro/summarize_runs.py repro/results/cheetah_v1_50k
+    PYTHONPATH=. python repro/summarize_runs.py repro/results/cheetah_v1_50k [--curves PNG]
 
 Runs are grouped by folder name without its seed suffix (`cv1-zeus-s2` ->
 `cv1-zeus`, `cv1-zeus-id-swap-s1` -> `cv1-zeus-id-swap`); each row reads the
 `adaptation.json` that `python -m zeus_ros.adaptation --json` wrote for the
 run (folders without one are listed as missing, not averaged). The README's
-adaptation tables are this script's output on the committed folders.
+adaptation tables are this script's output on the committed folders. With
+`--curves`, the groups' learning curves from each run's eval_log.csv (mean
+over seeds, shaded standard error, one panel per split, as Figure 2).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pathlib import Path
 import re
 import sys
 
-from zeus_ros.sweep_results import mean_sem_cell
+from zeus_ros.sweep_results import mean_sem_cell, plot_groups, read_curve
 
 SEED_SUFFIX = re.compile(r'-s(\d+)$')
 
@@ -105,11 +107,26 @@ def table(results: Path) -> str:
     return '\n'.join(lines)
 
 
+def plot(results: Path, path: Path) -> Path:
+    """Learning curves of every run group in the folder ({group: {seed: Curve}})."""
+    groups: dict[str, dict] = defaultdict(dict)
+    for folder in sorted(p for p in results.iterdir() if p.is_dir()):
+        seed = SEED_SUFFIX.search(folder.name)
+        curve = read_curve(folder / 'eval_log.csv') if seed else None
+        if curve is not None:
+            groups[SEED_SUFFIX.sub('', folder.name)][int(seed.group(1))] = curve
+    return plot_groups(results.name, dict(groups), path)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('results', type=Path, help='a folder of collected runs (collect_runs.py)')
+    parser.add_argument('--curves', type=Path, metavar='PNG',
+                        help='also draw the learning curves of every run group into PNG')
     args = parser.parse_args(argv)
     print(table(args.results))
+    if args.curves:
+        print(f'curves: {plot(args.results, args.curves)}')
     return 0
 
 

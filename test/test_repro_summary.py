@@ -6,6 +6,8 @@ from pathlib import Path
 import subprocess
 import sys
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -66,3 +68,28 @@ def test_context_use_at_the_train_values_gets_a_column_where_reports_measured_it
     out = _summary(tmp_path / 'new')
     assert 'the same at the train values |' in out
     assert out.splitlines()[2].endswith('| 5 +- 0 | 70 +- 10 |')
+
+
+def _eval_log(folder: Path, returns: list[float]) -> None:
+    """Write an eval_log.csv with one train value, evaluated at 1000, 2000, ... timesteps."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = ['timestep,env_steps,wall_s,split,value,return']
+    rows += [f'{1000 * (i + 1)},{8000 * (i + 1)},1.0,train,1.0,{r}' for i, r in enumerate(returns)]
+    (folder / 'eval_log.csv').write_text('\n'.join(rows) + '\n')
+
+
+def test_learning_curves_average_the_seeds_of_a_group_over_their_common_steps(tmp_path):
+    from zeus_ros.sweep_results import mean_curve, read_curve
+    _eval_log(tmp_path / 'cv0-zeus-s1', [10.0, 30.0, 50.0])
+    _eval_log(tmp_path / 'cv0-zeus-s2', [20.0, 50.0])          # still training
+    runs = {s: read_curve(tmp_path / f'cv0-zeus-s{s}' / 'eval_log.csv') for s in (1, 2)}
+    steps, mean, sem, seeds = mean_curve(runs, 'train')
+    assert list(steps) == [8000, 16000] and seeds == 2
+    np.testing.assert_allclose(mean, [15.0, 40.0])
+    np.testing.assert_allclose(sem, [5.0, 10.0])
+    assert mean_curve(runs, 'extrapolation') is None
+    png = tmp_path / 'curves.png'
+    subprocess.run([sys.executable, str(REPO / 'repro' / 'summarize_runs.py'), str(tmp_path),
+                    '--curves', str(png)], check=True, capture_output=True,
+                   env=os.environ | {'PYTHONPATH': str(REPO)})
+    assert png.stat().st_size > 1000

@@ -241,37 +241,47 @@ def _per_split_table(title: str, attribute: str, digits: int, family: str,
 
 def plot_curves(cfg: SweepConfig, curves: dict) -> list[Path]:
     """Return-vs-steps figures per family (mean over seeds, shaded standard error)."""
+    return [plot_groups(family, {m: curves.get((family, m), {}) for m in cfg.methods},
+                        cfg.root / f'curves_{family}.png') for family in cfg.families]
+
+
+def plot_groups(title: str, groups: dict, path: Path) -> Path:
+    """One panel per split, one line per group ({label: {seed: Curve}}), as Figure 2."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    paths = []
-    for family in cfg.families:
-        fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), sharey=True)
-        for ax, split in zip(axes, SPLIT_ORDER, strict=True):
-            for method in cfg.methods:
-                _plot_method(ax, curves.get((family, method), {}), split, method)
-            ax.set_title(f'{family}: {split}')
-            ax.set_xlabel('environment steps')
-        axes[0].set_ylabel('evaluation return')
-        axes[-1].legend(fontsize=8)
-        path = cfg.root / f'curves_{family}.png'
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        paths.append(path)
-    return paths
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), sharey=True)
+    for ax, split in zip(axes, SPLIT_ORDER, strict=True):
+        for label, runs in groups.items():
+            _plot_method(ax, runs, split, label)
+        ax.set_title(f'{title}: {split}')
+        ax.set_xlabel('environment steps')
+    axes[0].set_ylabel('evaluation return')
+    # The legend where the most groups have a line (a family may lack a split).
+    max(axes, key=lambda ax: len(ax.get_lines())).legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def mean_curve(runs: dict, split: str):
+    """Return (env steps, mean, standard error, seeds) over the runs' common steps, or None."""
+    usable = [c for c in runs.values() if split in c.returns]
+    if not usable:
+        return None
+    n = min(len(c.env_steps) for c in usable)
+    ys = np.asarray([c.returns[split][:n] for c in usable])
+    sem = ys.std(0, ddof=1) / np.sqrt(len(ys)) if len(ys) > 1 else np.zeros(n)
+    return np.asarray(usable[0].env_steps[:n]), ys.mean(0), sem, len(ys)
 
 
 def _plot_method(ax, runs: dict, split: str, method: str) -> None:
-    usable = [c for c in runs.values() if split in c.returns]
-    if not usable:
+    curve = mean_curve(runs, split)
+    if curve is None:
         return
-    n = min(len(c.env_steps) for c in usable)
-    x = np.asarray(usable[0].env_steps[:n])
-    ys = np.asarray([c.returns[split][:n] for c in usable])
-    mean = ys.mean(0)
-    sem = ys.std(0, ddof=1) / np.sqrt(len(ys)) if len(ys) > 1 else np.zeros(n)
-    ax.plot(x, mean, label=f'{method} ({len(ys)} seeds)')
+    x, mean, sem, seeds = curve
+    ax.plot(x, mean, label=f'{method} ({seeds} seed{"s" if seeds > 1 else ""})')
     ax.fill_between(x, mean - sem, mean + sem, alpha=0.2)
 
 

@@ -250,12 +250,18 @@ def plot_groups(title: str, groups: dict, path: Path) -> Path:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), sharey=True)
-    for ax, split in zip(axes, SPLIT_ORDER, strict=True):
+    # A panel per split some group has (cheetah-run-v1 has no extrapolation split).
+    splits = [s for s in SPLIT_ORDER
+              if any(mean_curve(runs, s) is not None for runs in groups.values())] or ['train']
+    fig, axes = plt.subplots(1, len(splits), figsize=(4.4 * len(splits), 3.6), sharey=True,
+                             squeeze=False)
+    axes = axes[0]
+    for ax, split in zip(axes, splits, strict=True):
         for label, runs in groups.items():
             _plot_method(ax, runs, split, label)
         ax.set_title(f'{title}: {split}')
-        ax.set_xlabel('environment steps')
+        ax.set_xlabel('environment steps (thousands)')
+        ax.xaxis.set_major_formatter(lambda x, _: f'{x / 1000:g}')
     axes[0].set_ylabel('evaluation return')
     # The legend where the most groups have a line (a family may lack a split).
     max(axes, key=lambda ax: len(ax.get_lines())).legend(fontsize=8)

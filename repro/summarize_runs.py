@@ -21,7 +21,8 @@ from pathlib import Path
 import re
 import sys
 
-from zeus_ros.sweep_results import mean_sem_cell, plot_groups, read_curve
+from zeus_ros.sweep_results import (mean_sem_cell, plot_groups, read_curve, SWAP_STEPS,
+                                    swaps_covered)
 
 SEED_SUFFIX = re.compile(r'-s(\d+)$')
 
@@ -39,6 +40,7 @@ class RunFigures:
     largest_gap: float | None     # return lost when the context is perturbed
     success: tuple[float | None, float | None] = (None, None)   # train, interpolation
     largest_gap_train: float | None = None   # the same at the train values (newer reports)
+    swaps_covered: float | None = None   # share of live swaps covered in time
 
 
 def read_run(folder: Path) -> RunFigures:
@@ -56,7 +58,8 @@ def read_run(folder: Path) -> RunFigures:
         speed_error=velocity.get('mean_per_split', {}).get('interpolation'),
         r2=identification.get('r2_per_step'), largest_gap=use.get('largest_gap'),
         success=(success.get('train'), success.get('interpolation')),
-        largest_gap_train=(report.get('context_use_train') or {}).get('largest_gap'))
+        largest_gap_train=(report.get('context_use_train') or {}).get('largest_gap'),
+        swaps_covered=swaps_covered(report.get('swaps') or []))
 
 
 def mean_se(values: list[float | None], digits: int) -> str:
@@ -81,13 +84,15 @@ def table(results: Path) -> str:
     # Context use at the train values only where some report measured it.
     with_train_gap = any(r.largest_gap_train is not None
                          for runs in groups.values() for r in runs)
+    with_swaps = any(r.swaps_covered is not None for runs in groups.values() for r in runs)
     lines = ['| runs | seeds | train return | interpolation return | extrapolation return | '
              'interp. \\|speed - target\\| (m/s) | decoded R^2 (held-out) | '
-             'largest return lost, context perturbed |'
+             + (f'live swaps 70 % covered within {SWAP_STEPS} steps | ' if with_swaps else '')
+             + 'largest return lost, context perturbed |'
              + (' the same at the train values |' if with_train_gap else '')
              + (' success, train | success, interpolation |' if with_success else ''),
-             '|---|---|---|---|---|---|---|---|' + ('---|' if with_train_gap else '')
-             + ('---|---|' if with_success else '')]
+             '|---|---|---|---|---|---|---|---|' + ('---|' if with_swaps else '')
+             + ('---|' if with_train_gap else '') + ('---|---|' if with_success else '')]
     for name, runs in groups.items():
         runs.sort(key=lambda r: r.seed)
         cells = [f'| {name}', ', '.join(str(r.seed) for r in runs),
@@ -95,8 +100,10 @@ def table(results: Path) -> str:
                  mean_se([r.interpolation_return for r in runs], 0),
                  mean_se([r.extrapolation_return for r in runs], 0),
                  mean_se([r.speed_error for r in runs], 2),
-                 mean_se([r.r2 for r in runs], 2),
-                 mean_se([r.largest_gap for r in runs], 0)]
+                 mean_se([r.r2 for r in runs], 2)]
+        if with_swaps:
+            cells.append(mean_se([r.swaps_covered for r in runs], 2))
+        cells.append(mean_se([r.largest_gap for r in runs], 0))
         if with_train_gap:
             cells.append(mean_se([r.largest_gap_train for r in runs], 0))
         if with_success:

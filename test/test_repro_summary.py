@@ -70,6 +70,25 @@ def test_context_use_at_the_train_values_gets_a_column_where_reports_measured_it
     assert out.splitlines()[2].endswith('| 5 +- 0 | 70 +- 10 |')
 
 
+def test_live_swaps_count_as_covered_only_within_twenty_steps(tmp_path):
+    swaps_per_seed = {1: [5, 20, 21, None], 2: [3, 4, 30, 40]}   # 2 of 4, then 2 of 4 covered
+    for seed, steps in swaps_per_seed.items():
+        folder = tmp_path / 'with' / f'cv0-zeus-s{seed}'
+        _report(folder, 500.0, 510.0, 0.7)
+        report = json.loads((folder / 'adaptation.json').read_text())
+        report['swaps'] = [{'from_value': 0.6, 'to_value': 1.5, 'steps_to_70pct': n}
+                           for n in steps]
+        (folder / 'adaptation.json').write_text(json.dumps(report))
+    _report(tmp_path / 'with' / 'cv0-sac-s1', 400.0, 410.0, None)   # no latent: no swaps
+    lines = _summary(tmp_path / 'with').splitlines()
+    assert 'live swaps 70 % covered within 20 steps' in lines[0]
+    rows = {line.split(' | ')[0].strip('| '): line for line in lines[2:]}
+    assert '| 0.70 +- 0.00 | 0.50 +- 0.00 | - |' in rows['cv0-zeus']
+    assert rows['cv0-sac'].endswith('| - | - | - |')
+    _report(tmp_path / 'without' / 'cv0-sac-s1', 400.0, 410.0, None)
+    assert 'live swaps' not in _summary(tmp_path / 'without')
+
+
 def _eval_log(folder: Path, returns: list[float]) -> None:
     """Write an eval_log.csv with one train value, evaluated at 1000, 2000, ... timesteps."""
     folder.mkdir(parents=True, exist_ok=True)

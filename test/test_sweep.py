@@ -145,12 +145,13 @@ def test_the_report_table_gives_context_use_at_the_train_values_only_where_measu
              ('f', 'sac'): ReportFigures({'train': [30.0, 32.0]}, [], [])}
     assert 'the same at the train values' not in markdown(rows, older)
     newer = {**older, ('f', 'zeus'): ReportFigures({'train': [40.0, 50.0]}, [0.7, 0.9],
-                                                   [30.0, 50.0], largest_gap_train=[10.0, 20.0])}
+                                                   [30.0, 50.0], largest_gap_train=[10.0, 20.0],
+                                                   swaps_covered=[0.5, 1.0])}
     table = [line for line in markdown(rows, newer).splitlines() if line.startswith('| ')]
     header = next(line for line in table if 'the same at the train values' in line)
     # the report's rows come after the trainer's own table
     zeus, sac = ([line for line in table if line.startswith(f'| {m} |')][-1]
                  for m in ('zeus', 'sac'))
-    assert zeus.endswith('| 40 +- 10 | 15 +- 5 |')
+    assert zeus.endswith('| 0.80 +- 0.10 | 0.75 +- 0.25 | 40 +- 10 | 15 +- 5 |')
     assert sac.endswith('| - | - | - |')
     assert header.count('|') == zeus.count('|') == sac.count('|')

@@ -115,6 +115,20 @@ class ReportFigures:
     velocity_error: dict[str, list[float]] = field(default_factory=dict)
     # tasks with a success flag (Sawyer-Peg-v0): split -> success rate, per seed
     success_rate: dict[str, list[float]] = field(default_factory=dict)
+    # methods with a latent: share of the live swaps covered in time, per seed
+    swaps_covered: list[float] = field(default_factory=list)
+
+
+# Issue #14's swap-response target: 70 % of a live swap covered within 20 control steps.
+SWAP_STEPS = 20
+
+
+def swaps_covered(swaps: list[dict]) -> float | None:
+    """Share of a report's live swaps 70 % covered within SWAP_STEPS; None if none ran."""
+    if not swaps:
+        return None
+    steps = [s['steps_to_70pct'] for s in swaps]
+    return sum(n is not None and n <= SWAP_STEPS for n in steps) / len(steps)
 
 
 def run_report(run: Path, episodes: int, steps: int) -> dict | None:
@@ -157,6 +171,9 @@ def adaptation_figures(cfg: SweepConfig, episodes: int = 2) -> dict:
                 if report['identification'] is not None:
                     figures.r2.append(report['identification']['r2_per_step'])
                     figures.largest_gap.append(report['context_use']['largest_gap'])
+                covered = swaps_covered(report.get('swaps') or [])
+                if covered is not None:
+                    figures.swaps_covered.append(covered)
                 if report.get('context_use_train') is not None:
                     figures.largest_gap_train.append(report['context_use_train']['largest_gap'])
             if figures.split_returns:
@@ -204,16 +221,18 @@ def _report_table(family: str, methods: list[str], figures: dict) -> list[str]:
     with_train_gap = any(figures[(family, m)].largest_gap_train for m in reported)
     lines = ['Adaptation report of the final checkpoints (`zeus_ros.adaptation`):', '',
              '| method | ' + ' | '.join(SPLIT_ORDER) +
-             ' | seeds | R^2 decoded (held-out) | largest return gap, context perturbed |'
+             f' | seeds | R^2 decoded (held-out) | live swaps 70 % covered within {SWAP_STEPS}'
+             ' steps | largest return gap, context perturbed |'
              + (' the same at the train values |' if with_train_gap else ''),
-             '|---' * (len(SPLIT_ORDER) + 4 + with_train_gap) + '|']
+             '|---' * (len(SPLIT_ORDER) + 5 + with_train_gap) + '|']
     for method in reported:
         fig = figures[(family, method)]
         seeds = max(len(v) for v in fig.split_returns.values())
         train_gap = f' {mean_sem_cell(fig.largest_gap_train)} |' if with_train_gap else ''
         lines.append(f'| {method} | ' + ' | '.join(
             mean_sem_cell(fig.split_returns.get(s, [])) for s in SPLIT_ORDER) +
-            f' | {seeds} | {mean_sem_cell(fig.r2, 2)} | {mean_sem_cell(fig.largest_gap)} |'
+            f' | {seeds} | {mean_sem_cell(fig.r2, 2)} | {mean_sem_cell(fig.swaps_covered, 2)}'
+            f' | {mean_sem_cell(fig.largest_gap)} |'
             + train_gap)
     return [*lines, '',
             *_per_split_table("Mean |speed - target| over each split's targets, m/s "

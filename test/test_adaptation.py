@@ -107,6 +107,22 @@ def test_zeroed_probe_feeds_zero_latents(zeus_id):
     assert intact.latents[5:].any()
 
 
+def test_a_shorter_deployment_window_changes_the_latent_only_once_the_window_is_full(zeus_id):
+    full = run_episode(InferenceModel.load(zeus_id), FAMILY, 0.2, seed=0, max_steps=30)
+    short_model = InferenceModel.load(zeus_id)
+    short_model.k = 2     # what the report's --window 2 deploys
+    short = run_episode(short_model, FAMILY, 0.2, seed=0, max_steps=30)
+    # Until two transitions exist both windows hold the same rows; later the k = 5
+    # window pools three to five of them, the short one only the last two.
+    np.testing.assert_allclose(short.latents[:2], full.latents[:2], atol=1e-6)
+    assert np.abs(short.latents[6:] - full.latents[6:]).max() > 1e-4
+    report = build_report(str(zeus_id), replace(QUICK, window=2, context_use_train=False))
+    assert report.k == 2
+    refused = subprocess.run([sys.executable, '-m', 'zeus_ros.adaptation', '--weights',
+                              str(zeus_id), '--window', '-1'], cwd=REPO, capture_output=True,
+                             text=True)
+    assert refused.returncode == 2 and 'window must be >= 0' in refused.stderr
+
 def test_other_physics_window_is_the_same_step_under_the_other_value():
     env = ParamEnv(FAMILY, 0.1, seed=3)
     env.reset(seed=3)

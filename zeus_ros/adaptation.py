@@ -67,6 +67,10 @@ class ReportConfig:
     swap_steps: int = field(default=600, metadata={'help': 'length of a swap episode'})
     context_use_train: bool = field(default=True, metadata={
         'help': 'also measure context use at the train values (3 perturbed runs per value)'})
+    window: int = field(default=0, metadata={
+        'help': "deploy with this many transitions per window instead of the checkpoint's k "
+                '(0: its k); a shorter window answers a swap sooner, a longer one reads '
+                'the parameter from more transitions'})
 
 
 @dataclass
@@ -381,6 +385,10 @@ def _verdict(intact: float, gap: float) -> str:
 def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
     """Run every measure for one checkpoint."""
     model = InferenceModel.load(weights)
+    if cfg.window < 0:
+        raise ValueError(f'window must be >= 0 (0: the checkpoint\'s k), got {cfg.window}')
+    if cfg.window:   # the encoders pool over a masked window of any length
+        model.k = cfg.window
     spec = get_sim_family(model.family)
     if hasattr(spec, 'episode_steps'):   # a family with its own horizon (Sawyer: 40 steps)
         cfg = replace(cfg, max_steps=min(cfg.max_steps, spec.episode_steps))
@@ -459,6 +467,9 @@ def main(argv=None) -> int:
         report = build_report(args.weights, cfg)
     except CheckpointError as error:
         print(f'cannot load weights: {error}', file=sys.stderr)
+        return 2
+    except ValueError as error:
+        print(f'adaptation_report: {error}', file=sys.stderr)
         return 2
     print_report(report)
     if args.json:

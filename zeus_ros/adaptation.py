@@ -386,7 +386,7 @@ def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
     """Run every measure for one checkpoint."""
     model = InferenceModel.load(weights)
     if cfg.window < 0:
-        raise ValueError(f'window must be >= 0 (0: the checkpoint\'s k), got {cfg.window}')
+        raise ValueError(f"window must be >= 0 (0: the checkpoint's k), got {cfg.window}")
     if cfg.window:   # the encoders pool over a masked window of any length
         model.k = cfg.window
     spec = get_sim_family(model.family)

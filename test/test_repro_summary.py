@@ -112,3 +112,21 @@ def test_learning_curves_average_the_seeds_of_a_group_over_their_common_steps(tm
                     '--curves', str(png)], check=True, capture_output=True,
                    env=os.environ | {'PYTHONPATH': str(REPO)})
     assert png.stat().st_size > 1000
+
+
+def test_window_tradeoff_tabulates_each_window_over_runs():
+    sys.path.insert(0, str(REPO / 'repro'))
+    from window_tradeoff import figures, markdown
+
+    def report(k, r2, steps):
+        return {'method': 'zeus-id', 'k': k, 'returns': [{'split': 'train', 'mean': 100.0 * r2}],
+                'identification': {'r2_per_step': r2},
+                'swaps': [{'steps_to_70pct': n} for n in steps]}
+    rows = [figures(report(25, 0.9, [30, 40, None, 10]), 25),
+            figures(report(25, 0.7, [50, 60, 70, 80]), 25),
+            figures(report(15, 0.8, [5, 12, 18, 25]), 25)]
+    assert rows[0].median_steps == 30 and rows[2].covered == 0.75
+    text = markdown(rows, 'cmd').splitlines()
+    short, own = (line for line in text if line.startswith('| zeus-id (25) |'))
+    assert short.startswith('| zeus-id (25) | 15 | 1 | 80 | 0.80 |')   # one run: no +-
+    assert own.startswith('| zeus-id (25) | 25 | 2 | 80 +- 10 | 0.80 +- 0.10 | 0.12 +- 0.12 |')

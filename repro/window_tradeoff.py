@@ -32,7 +32,8 @@ import sys
 
 from zeus_ros.adaptation import build_report, ReportConfig
 from zeus_ros.deploy.inference import InferenceModel
-from zeus_ros.sweep_results import mean_sem_cell, SWAP_STEPS, swaps_covered
+from summarize_runs import mean_se   # repro/ is on the path when a repro script runs
+from zeus_ros.sweep_results import SWAP_STEPS, swaps_covered
 
 RESULTS = Path(__file__).resolve().parent / 'results'
 REPORT = ReportConfig(episodes=2, context_use_train=False)
@@ -74,11 +75,6 @@ def figures(report: dict, trained_k: int) -> WindowFigures:
                          swaps_covered(report['swaps']), middle)
 
 
-def cell(values: list[float], digits: int = 0) -> str:
-    """'mean +- standard error' over runs; the value alone for one run, '-' for none."""
-    return f'{values[0]:.{digits}f}' if len(values) == 1 else mean_sem_cell(values, digits)
-
-
 def markdown(rows: list[WindowFigures], command: str) -> str:
     """One line per (method, window), mean +- standard error over the runs."""
     groups: dict[tuple, list[WindowFigures]] = defaultdict(list)
@@ -93,12 +89,11 @@ def markdown(rows: list[WindowFigures], command: str) -> str:
              'median steps to 70 % (covered swaps) |',
              '|---|---|---|' + '---|' * (len(splits) + 3)]
     for (method, trained_k, window), runs in sorted(groups.items()):
-        medians = [r.median_steps for r in runs if r.median_steps is not None]
         lines.append(f'| {method} ({trained_k}) | {window} | {len(runs)} | ' + ' | '.join(
-            cell([r.returns[s] for r in runs if s in r.returns]) for s in splits)
-            + f' | {cell([r.r2 for r in runs], 2)}'
-            f' | {cell([r.covered for r in runs], 2)}'
-            f' | {cell(medians, 1)} |')
+            mean_se([r.returns.get(s) for r in runs], 0) for s in splits)
+            + f' | {mean_se([r.r2 for r in runs], 2)}'
+            f' | {mean_se([r.covered for r in runs], 2)}'
+            f' | {mean_se([r.median_steps for r in runs], 1)} |')
     return '\n'.join(lines) + '\n'
 
 

@@ -384,9 +384,9 @@ def _verdict(intact: float, gap: float) -> str:
 
 def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
     """Run every measure for one checkpoint."""
-    model = InferenceModel.load(weights)
-    if cfg.window < 0:
+    if cfg.window < 0:   # refused before the weights are loaded
         raise ValueError(f"window must be >= 0 (0: the checkpoint's k), got {cfg.window}")
+    model = InferenceModel.load(weights)
     if cfg.window:   # the encoders pool over a masked window of any length
         model.k = cfg.window
     spec = get_sim_family(model.family)

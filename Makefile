@@ -22,11 +22,13 @@ test-unit: setup
 	$(IN_WS) python -m pytest -q -m unit test
 
 # The target-velocity cheetah (cheetah-run-v1), where a context is needed by
-# construction: zeus-id, whose decoded target follows each swap, beside the
-# context-free reference (sac) through the same graph. The friction walker:
+# construction: up-osi (the best learned context measured there), whose
+# decoded target follows each swap up and down, beside the context-free
+# reference (sac) through the same graph. DEMO_WEIGHTS=weights/cheetah-run-v1-zeus-id
+# shows this project's zeus-id instead. The friction walker:
 # DEMO_WEIGHTS=weights/walker-walk-slippery-zeus
 # DEMO_REFERENCE=weights/walker-walk-slippery-sac DEMO_SCHEDULE=0:0.25,333:0.06,666:0.5
-DEMO_WEIGHTS ?= weights/cheetah-run-v1-zeus-id
+DEMO_WEIGHTS ?= weights/cheetah-run-v1-up-osi
 DEMO_REFERENCE ?= $(wildcard weights/cheetah-run-v1-sac)
 DEMO_SCHEDULE ?= 0:0.5,333:2.5,666:1.2
 demo: setup

@@ -162,3 +162,18 @@ def test_swap_coverage_of_a_two_parameter_change_is_measured_along_it():
     estimates[14:] = [0.5, 1.0]
     assert steps_to_cover(estimates, 10, (0.0, 0.0), (0.5, 1.0)) == 4
     assert steps_to_cover(estimates[:14], 10, (0.0, 0.0), (0.5, 1.0)) is None
+
+
+def test_cross_reader_rebuilds_the_windows_the_live_episode_read(zeus_id):
+    """The batched windows of repro/cross_reader.py are the live loop's, step for step.
+
+    It decodes the transitions of a recorded episode in one batch.
+    """
+    sys.path.insert(0, str(REPO / 'repro'))
+    from cross_reader import episode_rows, reader_estimates
+    model = InferenceModel.load(zeus_id)
+    record = run_episode(model, FAMILY, 0.2, seed=3, max_steps=40)
+    batched = reader_estimates(model, episode_rows(record))
+    assert len(batched) == len(record.estimates) - model.k
+    np.testing.assert_allclose(batched, record.estimates[model.k:], rtol=1e-5, atol=1e-5)
+    assert np.ptp(batched) > 0   # not a constant: the comparison can fail

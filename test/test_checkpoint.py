@@ -218,7 +218,7 @@ def test_pickle_payload_in_place_of_weights_is_refused_unexecuted(saved, env, tm
 
 
 @pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'zeus-no-context-loss',
-                                    'cadm', 'up-osi', 'hyperdynamics'])
+                                    'cadm', 'up-osi', 'hyperdynamics', 'zeus-osi'])
 def test_every_method_round_trips_and_resumes(env, tmp_path, method):
     agent, replay = trained_agent(env, tiny(method))
     path = save_checkpoint(tmp_path / method, agent, env_info(env),

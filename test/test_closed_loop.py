@@ -162,7 +162,7 @@ def test_a_policy_that_observes_the_reward_runs_through_the_nodes_bit_exactly(
 
 
 @pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'cadm', 'up-osi',
-                                    'hyperdynamics', 'zeus-no-context-loss'])
+                                    'hyperdynamics', 'zeus-no-context-loss', 'zeus-osi'])
 def test_every_methods_checkpoint_runs_through_the_nodes_bit_exactly(loop, ros_node,
                                                                       method_checkpoints,
                                                                       method):

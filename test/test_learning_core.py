@@ -398,7 +398,7 @@ def test_zeus_id_reads_deltas():
 
 
 ALL_METHODS = ['zeus', 'zeus-no-context-loss', 'sac', 'oracle', 'zeus-id', 'cadm', 'up-osi',
-               'hyperdynamics']
+               'hyperdynamics', 'zeus-osi']
 
 
 @pytest.mark.parametrize('method', ALL_METHODS)
@@ -484,6 +484,35 @@ def test_zeus_id_identification_weight_routes_the_regression_into_psi_only():
     assert not moved('decoder')               # the decoder learns the same either way
 
 
+def test_zeus_osi_reads_its_estimate_off_the_latent_and_learns_it_through_psi_only():
+    agent, b = make_agent('zeus-osi', context_length=K), make_batch()
+    m = agent.method
+    assert m.decoder is None and m.context_dim == 6
+    c = m.psi(b.ctx_rows, b.ctx_mask)
+    assert torch.equal(m.decode(c), c[:, :1])          # the estimate IS the latent's head
+    zero_all(agent)
+    agent.critic_loss(b)[0].backward()
+    assert no_grad(m.psi)                              # no TD gradient, as zeus-id
+    # Its loss is zeus-id's plus id_weight * MSE of that head, and only psi learns from it.
+    from zeus_ros.core.methods.zeus_id import ZeusIdMethod
+    perm = torch.randperm(c.shape[0])
+    torch.manual_seed(1)
+    loss, c, metrics = m.model_loss(b, perm)
+    torch.manual_seed(1)
+    base = ZeusIdMethod.model_loss(m, b, perm)[0]
+    head = ((m.decode(c) - m.param.normalise(b.param)) ** 2).mean()
+    assert torch.allclose(loss - base, m.cfg.id_weight * head, atol=1e-4) and 'id_loss' in metrics
+    zero_all(agent)
+    head.backward()
+    assert has_grad(m.psi) and no_grad(m.models['T']) and no_grad(m.models['R'])
+    for name in ('phi', 'critic', 'actor'):
+        zero_all(agent)
+        m.model_loss(b)[0].backward()
+        assert no_grad(module(agent, name)), name
+    with pytest.raises(ValueError, match='id_weight > 0'):
+        make_agent('zeus-osi', id_weight=0.0)
+
+
 def test_the_ablation_refuses_a_context_loss_weight_at_configuration():
     assert tiny_config('zeus-no-context-loss').alpha_psi == 0.0
     with pytest.raises(ValueError, match='alpha_psi = 0 ablation'):
@@ -547,7 +576,7 @@ def test_relational_psi_is_order_and_padding_invariant_and_reads_the_other_rows(
 @pytest.mark.parametrize('method,extra', [('zeus', {}), ('zeus-id', {}), ('cadm', {}),
                                           ('hyperdynamics', {}), ('up-osi', {}),
                                           ('zeus-id', {'context_encoder': 'relational'}),
-                                          ('oracle', {}), ('sac', {})])
+                                          ('oracle', {}), ('sac', {}), ('zeus-osi', {})])
 def test_encode_pair_is_the_two_windows_latents_from_one_pass(method, extra):
     agent, b = make_agent(method, **extra), make_batch()
     m = agent.method
@@ -560,10 +589,11 @@ def test_encode_pair_is_the_two_windows_latents_from_one_pass(method, extra):
     c, cn = m.encode_pair(b, grad=True)
     assert torch.allclose(c, want_c, atol=1e-5) and torch.allclose(cn, want_cn, atol=1e-5)
     assert not cn.requires_grad
-    assert c.requires_grad == (method in ('zeus', 'zeus-id', 'cadm', 'hyperdynamics'))
+    assert c.requires_grad == (method in ('zeus', 'zeus-id', 'cadm', 'hyperdynamics',
+                                          'zeus-osi'))
 
 
-@pytest.mark.parametrize('method', ['oracle', 'zeus', 'zeus-id', 'up-osi'])
+@pytest.mark.parametrize('method', ['oracle', 'zeus', 'zeus-id', 'up-osi', 'zeus-osi'])
 def test_two_parameters_travel_as_columns_through_every_parameter_user(method):
     """A family with two parameters (Sawyer-Peg's goal x, y): contexts, decoders and losses."""
     scale = param_normaliser([(0.44, -0.08), (0.61, 0.08), (0.5, 0.0)])

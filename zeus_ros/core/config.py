@@ -33,7 +33,8 @@ class ZeusConfig:
 
     family: str = _f('walker-walk-v0', 'Environment family (sim_node.families).')
     method: str = _f('zeus', 'Context method (zeus_ros.core.methods): zeus, '
-                     'zeus-no-context-loss, zeus-id, sac, oracle, cadm, up-osi, hyperdynamics.')
+                     'zeus-no-context-loss, zeus-id, zeus-osi, sac, oracle, cadm, up-osi, '
+                     'hyperdynamics.')
     profile: str = _f('cpu', "Preset the values came from: 'cpu' or 'paper'.")
     # -- context -------------------------------------------------------
     context_length: int = _f(5, 'k: transitions in the context window (Tables 8-9).')

@@ -14,10 +14,11 @@ from zeus_ros.core.methods.sac import SacMethod
 from zeus_ros.core.methods.zeus import ZeusMethod, ZeusNoContextLoss
 from zeus_ros.core.methods.up_osi import UpOsiMethod
 from zeus_ros.core.methods.zeus_id import ZeusIdMethod
+from zeus_ros.core.methods.zeus_osi import ZeusOsiMethod
 
 METHODS: dict[str, type[ContextMethod]] = {
     m.name: m for m in (ZeusMethod, ZeusNoContextLoss, SacMethod, OracleMethod, ZeusIdMethod,
-                        CadmMethod, UpOsiMethod, HyperDynamicsMethod)}
+                        CadmMethod, UpOsiMethod, HyperDynamicsMethod, ZeusOsiMethod)}
 
 
 def get_method(name: str) -> type[ContextMethod]:

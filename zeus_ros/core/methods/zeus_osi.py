@@ -48,5 +48,5 @@ class ZeusOsiMethod(ZeusIdMethod):
         """zeus-id's loss plus id_weight * MSE(first P latent coordinates, parameter)."""
         loss, c, metrics = super().model_loss(b, perm)
         id_loss = F.mse_loss(self.decode(c), self.param.normalise(b.param))
-        metrics['id_loss'] = id_loss.detach()
+        metrics['decoder_loss'] = id_loss.detach()   # logged in zeus-id's column
         return loss + self.cfg.id_weight * id_loss, c, metrics

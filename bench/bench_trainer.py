@@ -7,14 +7,22 @@ random-exploration warm-up that fills the replay buffer) and reports env
 steps/s counting every training task's step, with the time split into
 simulation, acting, bookkeeping (windows + replay), sampling and each update
 section (critic, actor+alpha, targets, model/context, decoder).
+
+`--precision bf16` runs the same updates under CPU autocast to bfloat16 (a
+lever of issue #13 measured here, not a trainer option: the trainer computes
+in float32, and bfloat16's 8-bit mantissa would have to be shown to learn the
+same over seeds before it could become one).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 import tempfile
 import time
+
+import torch
 
 from zeus_ros.train import build_parser, RunArgs, Trainer
 
@@ -64,13 +72,26 @@ def instrument(tr: Trainer) -> tuple[list, '_Timed']:
     return sims, act
 
 
+def update_precision(precision: str):
+    """Return the context the updates run in: float32 as trained, or CPU autocast to bf16."""
+    if precision == 'bf16':
+        return torch.autocast('cpu', dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
 def run(family: str, profile: str, timesteps: int, warmup: int,
-        threads: int | None = None, method: str = 'zeus', extra: tuple = ()) -> dict:
+        threads: int | None = None, method: str = 'zeus', extra: tuple = (),
+        precision: str = 'fp32') -> dict:
     """Measure `timesteps` steady-state timesteps; return the figures.
 
     `extra`: more `KEY=VALUE` config overrides (e.g. another batch size).
     """
     tr = warmed_trainer(family, profile, warmup, threads, method, extra)
+    return measure(tr, timesteps, precision) | {'precision': precision}
+
+
+def measure(tr: Trainer, timesteps: int, precision: str) -> dict:
+    """Time `timesteps` timesteps of collection and one update each on a warmed trainer."""
     sims, act = instrument(tr)
     sample_t = collect_t = 0.0
     env0 = tr.env_steps
@@ -82,7 +103,8 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
         tr.timestep += 1
         batch = tr.replay.sample(tr.batch_size)
         t2 = time.perf_counter()
-        tr.agent.update(batch)
+        with update_precision(precision):
+            tr.agent.update(batch)
         collect_t += t1 - t0
         sample_t += t2 - t1
     total = time.perf_counter() - start
@@ -91,7 +113,7 @@ def run(family: str, profile: str, timesteps: int, warmup: int,
     split = {'simulation': sim, 'acting': act.total,
              'windows+replay add': collect_t - sim - act.total, 'replay sample': sample_t}
     split.update({f'update/{k}': v for k, v in tr.agent.timers.items()})
-    return {'family': family, 'profile': profile, 'tasks': len(tr.envs),
+    return {'family': tr.cfg.family, 'profile': tr.cfg.profile, 'tasks': len(tr.envs),
             'batch': tr.batch_size, 'hidden': tr.cfg.hidden_dim, 'threads': tr.cfg.num_threads,
             'timesteps': timesteps, 'env_steps': env_steps, 'seconds': total,
             'env_steps_per_s': env_steps / total, 'split': split}
@@ -108,14 +130,18 @@ def main(argv=None) -> None:
                    help="torch threads to compare, one run each (default: the profile's)")
     p.add_argument('--set', nargs='*', default=[], metavar='KEY=VALUE',
                    help='config overrides for every run (as train --set)')
+    p.add_argument('--precision', nargs='*', default=['fp32'], choices=('fp32', 'bf16'),
+                   help='update precision(s) to compare: fp32 (as trained) or bf16 autocast')
     args = p.parse_args(argv)
-    runs = ((f, t, m) for f in args.family for t in args.threads for m in args.method)
-    for family, threads, method in runs:
+    runs = ((f, t, m, x) for f in args.family for t in args.threads for m in args.method
+            for x in args.precision)
+    for family, threads, method, precision in runs:
         r = run(family, args.profile, args.timesteps, args.warmup, threads, method,
-                tuple(args.set))
+                tuple(args.set), precision)
         print(f"{method} {r['family']} profile={r['profile']} tasks={r['tasks']} "
               f"batch={r['batch']} "
-              f"hidden={r['hidden']} threads={r['threads']}: {r['env_steps']} env steps in "
+              f"hidden={r['hidden']} threads={r['threads']} precision={precision}: "
+              f"{r['env_steps']} env steps in "
               f"{r['seconds']:.1f} s = {r['env_steps_per_s']:.0f} env steps/s (with updates)")
         for k, v in r['split'].items():
             print(f'  {k:<22} {1000 * v / r["timesteps"]:7.2f} ms/timestep '

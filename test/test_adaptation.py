@@ -177,3 +177,21 @@ def test_cross_reader_rebuilds_the_windows_the_live_episode_read(zeus_id):
     assert len(batched) == len(record.estimates) - model.k
     np.testing.assert_allclose(batched, record.estimates[model.k:], rtol=1e-5, atol=1e-5)
     assert np.ptp(batched) > 0   # not a constant: the comparison can fail
+
+
+@pytest.fixture(scope='module')
+def up_osi(tmp_path_factory):
+    return train_tiny(tmp_path_factory, 'up-osi')
+
+
+def test_estimate_gap_feeds_the_true_parameter_where_the_estimate_sits(up_osi):
+    """repro/estimate_gap.py: with its probe the policy acts on the truth, not OSI's estimate."""
+    sys.path.insert(0, str(REPO / 'repro'))
+    from estimate_gap import TrueEstimate
+    model = InferenceModel.load(up_osi)
+    inferred = run_episode(model, FAMILY, 0.3, seed=1, max_steps=40)
+    truth = run_episode(model, FAMILY, 0.3, seed=1, max_steps=40,
+                        probe=TrueEstimate(model, 0.3))
+    np.testing.assert_allclose(truth.estimates, 0.3, atol=1e-6)   # decoded back to the truth
+    assert np.ptp(inferred.estimates) > 0   # OSI's own estimate moves: the probe changed it
+    assert not np.allclose(inferred.actions, truth.actions)

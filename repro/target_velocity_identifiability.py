@@ -9,7 +9,7 @@ each checkpoint exactly as the evaluator does (`zeus_ros.evaluate.run_episode`,
 interpolation target, with the deterministic policy tanh(mu) and with actions
 sampled from the same actor (`Actor.sample`, the trainer's collection policy).
 Per control step it records the true target T, the speed v, d read from the
-reward, and the decoded estimate; per window (the 25 transitions psi read)
+reward, and the decoded estimate; per window (the k transitions psi read)
 the mean speed vbar, the mean d (dbar), the spread of v, and the two roots
 vbar + dbar ("upper") and vbar - dbar ("lower"): one of them is T, the other
 the mirror 2 vbar - T.
@@ -160,8 +160,9 @@ def measure(weights: str, episodes: int, max_steps: int) -> dict:
     model = InferenceModel.load(weights)
     spec = ParamEnv(model.family, seed=0).spec
     targets = spec.interpolation
-    data = {'k': model.k, 'targets': targets, 'steps': {}, 'relabel': {}, 'check': 0.0,
-            'scale': model.param_scale, 'train': {}, 'decoder_loss': last_decoder_loss(weights)}
+    data = {'k': model.k, 'method': model.method_name, 'targets': targets, 'steps': {},
+            'relabel': {}, 'check': 0.0, 'scale': model.param_scale, 'train': {},
+            'decoder_loss': last_decoder_loss(weights)}
     for policy in REPLAY_LIKE:
         for target in spec.train:
             rec, speeds = run(model, policy, target, 0, max_steps)
@@ -308,13 +309,15 @@ def _policy_tables(data: dict, policy: str) -> list[dict]:
 
 
 def _header_section(all_data: dict, runs: list[str]) -> list[str]:
+    methods = ', '.join(sorted({all_data[r].get('method', 'zeus-id') for r in runs}))
+    ks = ', '.join(str(k) for k in sorted({all_data[r]['k'] for r in runs}))
     return ['# Target velocity from rewards: identified up to its sign? (cheetah-run-v1, '
-            'zeus-id)', '',
+            f'{methods})', '',
             'Command and method: the docstring of '
             '`repro/target_velocity_identifiability.py`. Checkpoints: '
             + ', '.join(f'`{r}`' for r in runs) + '. Every interpolation target '
             "(0.4 ... 2.9 m/s), episode seeds 0 and 1 (the evaluator's), 1000 steps, "
-            f'k = 25; figures over the steps whose window is full. d read from the reward '
+            f'k = {ks}; figures over the steps whose window is full. d read from the reward '
             f'equals |v - T| to {all_data[runs[0]]["check"]:.1e} m/s (largest deviation '
             'over the episodes of the first checkpoint).', '',
             '`deterministic`: tanh(mu), what the evaluator and the adaptation report '

@@ -82,6 +82,11 @@ def run_figures(path: Path, split: str, episodes: int) -> tuple[InferenceModel, 
     return model, [value_figures(model, v, episodes) for v in values]
 
 
+def run_means(figs: list) -> tuple[float, float]:
+    """Return one run's mean return over the split's values: (inferred, truth)."""
+    return (float(np.mean([f.inferred for f in figs])), float(np.mean([f.truth for f in figs])))
+
+
 def render(rows: dict, split: str, episodes: int, argv: list) -> str:
     """Markdown: the per-run table, the per-value table, and the mean over runs."""
     lines = [f'# The estimate replaced by the truth ({split})', '',
@@ -91,15 +96,13 @@ def render(rows: dict, split: str, episodes: int, argv: list) -> str:
              '| run | method | return, estimate inferred | return, true parameter | '
              'gained by the truth |', '|---|---|---|---|---|']
     for run, (method, figs) in rows.items():
-        inferred = np.mean([f.inferred for f in figs])
-        truth = np.mean([f.truth for f in figs])
+        inferred, truth = run_means(figs)
         lines.append(f'| {run} | {method} | {inferred:.1f} | {truth:.1f} | '
                      f'{truth - inferred:.1f} |')
     if len(rows) > 1:
-        per_run = [[np.mean([getattr(f, k) for f in figs]) for _, figs in rows.values()]
-                   for k in ('inferred', 'truth')]
-        lines.append(f'| mean +- SE over {len(rows)} runs | | {mean_se(per_run[0])} | '
-                     f'{mean_se(per_run[1])} | |')
+        inferred, truth = zip(*(run_means(figs) for _, figs in rows.values()), strict=True)
+        lines.append(f'| mean +- SE over {len(rows)} runs | | {mean_se(list(inferred), 1)} | '
+                     f'{mean_se(list(truth), 1)} | |')
     lines += ['', '| run | value | mean estimate | return, inferred | return, truth |',
               '|---|---|---|---|---|']
     for run, (_, figs) in rows.items():
@@ -122,8 +125,8 @@ def main(argv=None) -> int:
     for path in args.runs:
         model, figs = run_figures(path, args.split, args.episodes)
         rows[path.name] = (model.method_name, figs)
-        print(f'{path.name}: inferred {np.mean([f.inferred for f in figs]):.1f}, '
-              f'truth {np.mean([f.truth for f in figs]):.1f}', flush=True)
+        inferred, truth = run_means(figs)
+        print(f'{path.name}: inferred {inferred:.1f}, truth {truth:.1f}', flush=True)
     out = RESULTS / f'{args.name}.md'
     out.write_text(render(rows, args.split, args.episodes, argv))
     print(f'wrote {out}')

@@ -130,3 +130,13 @@ def test_window_tradeoff_tabulates_each_window_over_runs():
     short, own = (line for line in text if line.startswith('| zeus-id (25) |'))
     assert short.startswith('| zeus-id (25) | 15 | 1 | 80 | 0.80 |')   # one run: no +-
     assert own.startswith('| zeus-id (25) | 25 | 2 | 80 +- 10 | 0.80 +- 0.10 | 0.12 +- 0.12 |')
+
+
+def test_estimate_gap_table_gives_the_mean_over_runs():
+    sys.path.insert(0, str(REPO / 'repro'))
+    from estimate_gap import render, ValueFigures
+    one = [ValueFigures(1.0, -300.0, -250.0, 1.1), ValueFigures(2.0, -310.0, -240.0, 2.1)]
+    two = [ValueFigures(1.0, -320.0, -250.0, 1.1), ValueFigures(2.0, -330.0, -240.0, 2.1)]
+    out = render({'a': ('up-osi', one), 'b': ('up-osi', two)}, 'interpolation', 2, [])
+    assert '| a | up-osi | -305.0 | -245.0 | 60.0 |' in out
+    assert '| mean +- SE over 2 runs | | -315.0 +- 10.0 | -245.0 +- 0.0 | |' in out

@@ -21,19 +21,26 @@ test: setup
 test-unit: setup
 	$(IN_WS) python -m pytest -q -m unit test
 
-# The target-velocity cheetah (cheetah-run-v1), where a context is needed by
-# construction: up-osi (the best learned context measured there), whose
-# decoded target follows each swap up and down, beside the context-free
-# reference (sac) through the same graph. DEMO_WEIGHTS=weights/cheetah-run-v1-zeus-id
-# shows this project's zeus-id instead. The friction walker:
-# DEMO_WEIGHTS=weights/walker-walk-slippery-zeus
-# DEMO_REFERENCE=weights/walker-walk-slippery-sac DEMO_SCHEDULE=0:0.25,333:0.06,666:0.5
-DEMO_WEIGHTS ?= weights/cheetah-run-v1-up-osi
-DEMO_REFERENCE ?= $(wildcard weights/cheetah-run-v1-sac)
-DEMO_SCHEDULE ?= 0:0.5,333:2.5,666:1.2
+# A link length swapped live (#36): the reacher's forearm goes 0.12 -> 0.07 ->
+# 0.19 m (held-out values) while the target stays where it is; rma with a
+# 10-step window, trained with the length resampled inside episodes, decodes
+# the new length within a few steps and re-places the fingertip, beside the
+# context-free reference (sac) through the same graph. Over episode seeds 0-9
+# (in process, research/results/live_swaps_36/) it ends above the reference
+# in all 10. The target-velocity cheetah:
+# DEMO_WEIGHTS=weights/cheetah-run-v1-up-osi DEMO_REFERENCE=weights/cheetah-run-v1-sac
+# DEMO_SCHEDULE=0:0.5,333:2.5,666:1.2.
+DEMO_WEIGHTS ?= weights/reacher-length-rma-k10-swaps
+DEMO_REFERENCE ?= $(wildcard weights/reacher-length-sac)
+DEMO_SCHEDULE ?= 0:0.12,333:0.07,666:0.19
+DEMO_SEED ?= 0
+# auto: a free ROS_DOMAIN_ID of the demo's own (two demos at once never cross-talk).
+DEMO_DOMAIN ?= auto
 demo: setup
-	$(IN_WS) python -m zeus_ros.demo --weights $(DEMO_WEIGHTS) --out demo_out \
-	  --schedule $(DEMO_SCHEDULE) $(if $(DEMO_REFERENCE),--reference-weights $(DEMO_REFERENCE))
+	$(IN_WS) python -m zeus_ros.ros_tools.demo --weights $(DEMO_WEIGHTS) --out demo_out \
+	  --schedule $(DEMO_SCHEDULE) --seed $(DEMO_SEED) \
+	  $(if $(DEMO_REFERENCE),--reference-weights $(DEMO_REFERENCE)) \
+	  --domain-id $(DEMO_DOMAIN)
 
 lint: setup
 	$(IN_WS) ruff check .
@@ -41,24 +48,28 @@ lint: setup
 clean:
 	rm -rf build install log demo_out
 
-# Benchmarks (see BENCHMARKS.md). REALTIME_SECONDS=600 for the 10-minute realtime goal.
+# Benchmarks (see docs/pages/benchmarks.md). REALTIME_SECONDS=600 for the 10-minute realtime goal.
+# Their scripts and recorded figures live with the rest of the research, outside the package.
+BENCH := research/benchmarks
 REALTIME_SECONDS ?= 60
 # The trainer's speed is reported as a ratio to this commit (issue 13's starting point).
 TRAINER_BASELINE ?= ad864f5
 bench: setup
-	$(IN_WS) python bench/bench_hop.py
-	$(IN_WS) python bench/bench_loop.py --weights weights/walker-walk-v0-zeus --composed \
+	$(IN_WS) python $(BENCH)/bench_hop.py
+	$(IN_WS) python $(BENCH)/bench_inference.py --weights weights/walker-walk-v0-zeus \
+	  weights/cheetah-run-v1-zeus-id weights/cheetah-run-v1-sac --json $(BENCH)/results_inference.json
+	$(IN_WS) python $(BENCH)/bench_loop.py --weights weights/walker-walk-v0-zeus --composed \
 	  --transports SHM \
 	  --realtime-weights weights/cheetah-run-v0-zeus --realtime-seconds $(REALTIME_SECONDS) \
-	  --compare-normal-scheduler --json bench/results_loop.json
-	$(IN_WS) python bench/bench_trainer.py --profile cpu --threads 2 1
-	$(IN_WS) python bench/bench_trainer_ab.py --baseline $(TRAINER_BASELINE) --rounds 3 --threads 1 \
-	  --pair --json bench/results_trainer_ab.json
+	  --compare-normal-scheduler --json $(BENCH)/results_loop.json
+	$(IN_WS) python $(BENCH)/bench_trainer.py --profile cpu --threads 2 1
+	$(IN_WS) python $(BENCH)/bench_trainer_ab.py --baseline $(TRAINER_BASELINE) --rounds 3 --threads 1 \
+	  --pair --json $(BENCH)/results_trainer_ab.json
 
 # Soak (issue 17): lockstep loop, a live swap every 10 s, a kill -9 and restart
-# of each node; figures per minute and the goals' pass/fail (bench/soak.py).
+# of each node; figures per minute and the goals' pass/fail (research/benchmarks/soak.py).
 # Exits non-zero when a goal is missed. SOAK_MINUTES=30 for the recorded run.
 SOAK_MINUTES ?= 30
 .PHONY: soak
 soak: setup
-	$(IN_WS) python bench/soak.py --minutes $(SOAK_MINUTES) --json bench/results_soak.json
+	$(IN_WS) python $(BENCH)/soak.py --minutes $(SOAK_MINUTES) --json $(BENCH)/results_soak.json

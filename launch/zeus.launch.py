@@ -3,7 +3,7 @@
 Usage: ros2 launch zeus_ros zeus.launch.py weights:=<checkpoint> family:=walker-walk-v0
 mode:=lockstep [thread_priority:=50] [composed:=true]
 
-composed:=true runs the three nodes in one process (`zeus_ros.composed`, as
+composed:=true runs the three nodes in one process (`zeus_ros.ros_tools.composed`, as
 `bringup --composed`): the same nodes and topics, on one loop thread.
 """
 
@@ -23,7 +23,7 @@ class NodeFailed(RuntimeError):
     """A node of the graph exited with an error: the launch fails with it."""
 
 
-def exit_problem(name, returncode):
+def exit_problem(name, returncode) -> str | None:
     """Why the launch must fail when `name` exited with `returncode` (None: a clean stop)."""
     if returncode in (0, None):
         return None
@@ -32,7 +32,7 @@ def exit_problem(name, returncode):
     return f'{name} {how}; stopping the launch (its message is above)'
 
 
-def _end_launch(event, context):
+def _end_launch(event, context):  # noqa: ARG001 (OnProcessExit's on_exit signature)
     # An exception raised in an event handler makes LaunchService.run return 1,
     # which `ros2 launch` returns; a clean exit just shuts the others down.
     problem = exit_problem(event.action.name, event.returncode)
@@ -42,15 +42,16 @@ def _end_launch(event, context):
             EmitEvent(event=Shutdown(reason=f'{event.action.name} stopped'))]
 
 
-def composed_ros_arguments(config, family, weights, mode, priority):
+def composed_ros_arguments(config, family, weights, mode, priority, backend='torch') -> list:
     """Return the one process's ROS arguments: the config file, then each node's values.
 
     Given by node name (-p sim_node:mode:=...), since one `parameters` dict would
     go to all three nodes and each refuses the others' parameters; later
     arguments win, so the launch arguments override the file.
     """
-    values = {'sim_node': {'family': family, 'mode': mode}, 'context_node': {'weights': weights},
-              'policy_node': {'weights': weights}}
+    controller = {'weights': weights, 'backend': backend}
+    values = {'sim_node': {'family': family, 'mode': mode}, 'context_node': controller,
+              'policy_node': controller}
     arguments = ['--params-file', config]
     for node, params in values.items():
         for key, value in {**params, 'thread_priority': priority}.items():
@@ -58,10 +59,11 @@ def composed_ros_arguments(config, family, weights, mode, priority):
     return arguments
 
 
-def generate_launch_description():
+def generate_launch_description() -> LaunchDescription:
     config = os.path.join(get_package_share_directory('zeus_ros'), 'config', 'zeus.yaml')
     family = LaunchConfiguration('family')
-    weights = LaunchConfiguration('weights')
+    weights, backend = LaunchConfiguration('weights'), LaunchConfiguration('backend')
+    controller = {'weights': weights, 'backend': backend}
     mode = LaunchConfiguration('mode')
     thread_priority = LaunchConfiguration('thread_priority')
     separate = UnlessCondition(LaunchConfiguration('composed'))
@@ -71,15 +73,15 @@ def generate_launch_description():
              parameters=[config, {'family': family, 'mode': mode}, priority],
              condition=separate),
         Node(package='zeus_ros', executable='context_node', name='context_node',
-             output='screen', parameters=[config, {'weights': weights}, priority],
+             output='screen', parameters=[config, controller, priority],
              condition=separate),
         Node(package='zeus_ros', executable='policy_node', name='policy_node',
-             output='screen', parameters=[config, {'weights': weights}, priority],
+             output='screen', parameters=[config, controller, priority],
              condition=separate),
         # No `name`: a node-name remapping would rename all three nodes.
         Node(package='zeus_ros', executable='composed', output='screen',
              ros_arguments=composed_ros_arguments(config, family, weights, mode,
-                                                  thread_priority),
+                                                  thread_priority, backend),
              condition=IfCondition(LaunchConfiguration('composed'))),
     ]
     # Like bringup: when one node ends, the whole launch ends, and a node that
@@ -92,6 +94,9 @@ def generate_launch_description():
         DeclareLaunchArgument('family', default_value='walker-walk-v0',
                               description='environment family the weights were trained on'),
         DeclareLaunchArgument('weights', description='checkpoint directory'),
+        DeclareLaunchArgument('backend', default_value='torch',
+                              description="what runs the controllers' networks: torch or "
+                                          'onnx (ONNX Runtime)'),
         DeclareLaunchArgument('mode', default_value='lockstep',
                               description='lockstep or realtime'),
         DeclareLaunchArgument('thread_priority', default_value='0',

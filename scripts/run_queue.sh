@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Run training jobs one after another, resuming any that has a checkpoint.
 #   scripts/run_queue.sh RUNS_DIR JOBS_FILE [--report]
-# JOBS_FILE: one job a line, "<run name> <zeus_ros.train arguments...>" (no --out,
+# JOBS_FILE: one job a line, "<run name> <zeus_ros.learning_tools.train arguments...>" (no --out,
 # no --resume: the queue adds them). Start two queues (two lanes) for two cores;
 # each job trains with one torch thread. A job whose run directory holds
 # DONE is skipped, so a killed queue restarted with the same file picks up
@@ -15,7 +15,7 @@ source scripts/ros_env.sh && source "$ZEUS_VENV/bin/activate"
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 report_run() {   # $1 name, $2 run directory
   [[ "$report" == --report && ! -f "$2/adaptation.json" ]] || return 0
-  python -m zeus_ros.adaptation --weights "$2" --episodes 2 --json "$2/adaptation.json" \
+  python -m zeus_ros.learning_tools.adaptation --weights "$2" --episodes 2 --json "$2/adaptation.json" \
     >"$2/adaptation.txt" 2>&1 </dev/null
   echo "[$(date +%T)] $1: report exit $?" | tee -a "$runs/queue.log"
 }
@@ -27,7 +27,7 @@ while read -r name args; do
   mkdir -p "$out"
   echo "[$(date +%T)] $name: $args ${resume[*]}" | tee -a "$runs/queue.log"
   # shellcheck disable=SC2086
-  python -m zeus_ros.train --out "$out" $args "${resume[@]}" --quiet --set num_threads=1 \
+  python -m zeus_ros.learning_tools.train --out "$out" $args "${resume[@]}" --quiet --set num_threads=1 \
     >>"$out/stdout.log" 2>&1 </dev/null
   rc=$?
   echo "[$(date +%T)] $name: exit $rc" | tee -a "$runs/queue.log"

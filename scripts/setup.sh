@@ -56,7 +56,11 @@ touch "$venv/COLCON_IGNORE"
 
 mkdir -p "$root/log"
 echo "[setup] colcon build (zeus_msgs, zeus_ros)"
-"$venv/bin/colcon" --log-base "$root/log" build \
+# PYTHONDONTWRITEBYTECODE (set in some shells and containers) makes setuptools'
+# build_py and install_lib print "byte-compiling is disabled, skipping" on
+# stderr at every build, which colcon reports as "1 package had stderr output".
+# The install tree is built once and imported by every node: let it compile.
+env -u PYTHONDONTWRITEBYTECODE "$venv/bin/colcon" --log-base "$root/log" build \
   --base-paths "$root" "$root/msg_defs" \
   --build-base "$root/build" --install-base "$root/install" \
   --event-handlers console_direct- summary+ \

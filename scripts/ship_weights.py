@@ -1,11 +1,11 @@
 """Copy a run's deployable weights into weights/ with their evaluation record.
 
     python scripts/ship_weights.py runs/walker-walk-v0-zeus weights/walker-walk-v0-zeus \
-        --command "python -m zeus_ros.train ..." --episodes 2
+        --command "python -m zeus_ros.learning_tools.train ..." --episodes 2
 
 Copies model.safetensors and metadata.json (what the nodes load; the training
 state with the replay buffer stays in the run), evaluates the checkpoint on the
-train, interpolation and extrapolation values with `zeus_ros.evaluate` and
+train, interpolation and extrapolation values with `zeus_ros.learning_tools.evaluate` and
 writes RECORD.md and record.json beside the weights.
 """
 
@@ -21,9 +21,10 @@ import time
 import numpy as np
 
 from sim_node.families import format_task, get_sim_family, SPLITS
-from zeus_ros.adaptation import build_report, ReportConfig
+from zeus_ros.learning_tools.adaptation import build_report, ReportConfig
 from zeus_ros.deploy.inference import InferenceModel
-from zeus_ros.evaluate import evaluate
+from zeus_ros.deploy.metadata import as_json
+from zeus_ros.learning_tools.evaluate import evaluate
 
 SHIPPED = ('model.safetensors', 'metadata.json')
 
@@ -47,7 +48,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--note', default='', help='a line for the record')
     parser.add_argument('--no-report', action='store_true',
-                        help='skip the adaptation report (zeus_ros.adaptation)')
+                        help='skip the adaptation report (zeus_ros.learning_tools.adaptation)')
     return parser.parse_args(argv)
 
 
@@ -75,13 +76,13 @@ def build_record(args: argparse.Namespace, model: InferenceModel) -> dict:
     started = time.monotonic()
     results = {split: evaluate(model, spec.split(split), args.episodes, args.seed)
                for split in SPLITS if spec.split(split)}
-    meta = model.metadata
+    meta = model.meta
     return {
         'family': model.family, 'method': model.method_name, 'command': args.command,
-        'seed': meta.get('seed'),
-        'steps': meta['steps'],
-        'training_wall_s': meta['steps'].get('wall_s') or training_wall_time(args.run),
-        'alpha_psi': meta['config'].get('alpha_psi'), 'git_commit': meta.get('git_commit'),
+        'seed': meta.seed,
+        'steps': as_json(meta.steps),
+        'training_wall_s': meta.steps.wall_s or training_wall_time(args.run),
+        'alpha_psi': meta.zeus_config().alpha_psi, 'git_commit': meta.git_commit,
         'eval_episodes_per_value': args.episodes, 'eval_seed': args.seed,
         'eval_wall_s': time.monotonic() - started, 'results': results,
         'size_bytes': {n: (args.dest / n).stat().st_size for n in SHIPPED},
@@ -102,7 +103,8 @@ def record_lines(args: argparse.Namespace, model: InferenceModel, record: dict) 
              if record['training_wall_s'] else '- training wall time: unknown',
              '- files: ' + ', '.join(f'{n} ({s / 1e3:.0f} kB)'
                                       for n, s in record['size_bytes'].items()),
-             f'- evaluation: `zeus_ros.evaluate`, deterministic policy, {args.episodes} '
+             '- evaluation: `zeus_ros.learning_tools.evaluate`, deterministic policy, '
+             f'{args.episodes} '
              f'episode(s) per value, seeds {args.seed}..{args.seed + args.episodes - 1}', '']
     if args.note:
         lines += [args.note, '']

@@ -1,4 +1,4 @@
-"""MuJoCo simulation of parameter-varied robots: the core and its ROS 2 node."""
+"""MuJoCo simulation of parameter-varied robots (no ROS: its node is zeus_ros.nodes.sim_node)."""
 
 import os
 

@@ -25,22 +25,26 @@ import math
 import xml.etree.ElementTree as ElementTree
 
 from dm_control.rl import control
-from dm_control.suite import cheetah, finger, walker
+from dm_control import mujoco as dm_mujoco
+from dm_control.suite import base, cartpole, cheetah, finger, walker
+from dm_control.utils import rewards
 import mujoco
 import numpy as np
 
 from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_family,
                                GOAL_FAMILIES)
-from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout
+from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout, StepResult
 
 __all__ = ['check_action', 'ObservationLayout', 'ParamEnv', 'StepResult', 'layout_from_model']
 
 EPISODE_STEPS = 1000
 
 # Control period of each domain, as dm_control's walk/run/spin tasks use it.
-CONTROL_TIMESTEP = {'walker': 0.025, 'cheetah': 0.01, 'finger': 0.02}
+CONTROL_TIMESTEP = {'walker': 0.025, 'cheetah': 0.01, 'finger': 0.02, 'cartpole': 0.01,
+                    'reacher': 0.02}
 
-_PHYSICS = {'walker': walker.Physics, 'cheetah': cheetah.Physics, 'finger': finger.Physics}
+_PHYSICS = {'walker': walker.Physics, 'cheetah': cheetah.Physics, 'finger': finger.Physics,
+            'cartpole': cartpole.Physics, 'reacher': dm_mujoco.Physics}
 
 
 
@@ -57,7 +61,42 @@ class CheetahTargetVelocity(cheetah.Cheetah):
         return -speed_error - control_cost
 
 
+class ReachTargetInSpace(base.Task):
+    """Reacher whose target is a joint-state position and whose fingertip is not observed.
+
+    The target is put at a uniform angle and a radius of 0.10-0.17 m, reachable
+    by every forearm length of `reacher-length`'s core range. The reward is
+    1 within 1 cm and falls with a long tail (0.24 at 6 cm): dense enough to
+    learn from, sharp enough that a tip placed for the wrong length loses it.
+    """
+
+    TARGET_RADII = (0.10, 0.17)
+
+    def initialize_episode(self, physics):  # noqa: D102
+        qpos = physics.named.data.qpos
+        qpos['shoulder'] = self.random.uniform(-np.pi, np.pi)
+        qpos['wrist'] = self.random.uniform(*np.radians((-160.0, 160.0)))
+        angle = self.random.uniform(0, 2 * np.pi)
+        radius = self.random.uniform(*self.TARGET_RADII)
+        qpos['target_x'] = radius * np.sin(angle)
+        qpos['target_y'] = radius * np.cos(angle)
+        super().initialize_episode(physics)
+
+    def get_observation(self, physics):  # noqa: D102, ARG002 (the env builds its own)
+        return {}
+
+    def get_reward(self, physics):  # noqa: D102
+        xpos = physics.named.data.geom_xpos
+        distance = float(np.linalg.norm(xpos['target', :2] - xpos['finger', :2]))
+        return rewards.tolerance(distance, bounds=(0.0, 0.01), margin=0.05,
+                                 sigmoid='long_tail', value_at_margin=0.1)
+
+
 def _make_task(spec: FamilySpec, value: float, random: np.random.RandomState):
+    if spec.domain == 'reacher':
+        return ReachTargetInSpace(random=random)
+    if spec.domain == 'cartpole':
+        return cartpole.Balance(swing_up=True, sparse=False, random=random)
     if spec.domain == 'walker':
         return walker.PlanarWalker(move_speed=walker._WALK_SPEED, random=random)
     if spec.domain == 'finger':
@@ -194,21 +233,6 @@ def layout_from_model(model: mujoco.MjModel) -> ObservationLayout:
 
 
 @dataclass(frozen=True)
-class StepResult:
-    """What one control step returns."""
-
-    observation: np.ndarray
-    reward: float
-    terminal: bool
-    truncated: bool
-    # The action MuJoCo applied (validated, clipped to [-1, 1]).
-    applied_action: np.ndarray | None = None
-    # Set when MuJoCo became unstable: the episode was reset, and the
-    # observation is the new episode's first one.
-    instability: str | None = None
-
-
-@dataclass(frozen=True)
 class PreparedParam:
     """A value and the model compiled for it, not yet in force (`ParamEnv.prepare_param`)."""
 
@@ -216,7 +240,7 @@ class PreparedParam:
     model: mujoco.MjModel
 
     @property
-    def values(self) -> tuple[float]:
+    def values(self) -> tuple[float, ...]:
         """The value as a family's value tuple (what the sim node's swaps carry)."""
         return (self.value,)
 
@@ -262,7 +286,7 @@ class ParamEnv:
         return self.spec.param_names
 
     @property
-    def param_values(self) -> tuple[float]:
+    def param_values(self) -> tuple[float, ...]:
         """The parameter value in force, as a tuple in `param_names` order."""
         return (self._value,)
 
@@ -287,7 +311,7 @@ class ParamEnv:
         return float(self._physics.data.time)
 
     @property
-    def physics(self):
+    def physics(self) -> dm_mujoco.Physics:
         """The dm_control Physics in force (`set_param` makes a new one, `apply_prepared` not)."""
         return self._physics
 
@@ -363,13 +387,13 @@ class ParamEnv:
                              f'{self.spec.domain} model: it cannot be swapped in place')
         return PreparedParam(value, model)
 
-    def set_values(self, values: tuple[float]) -> None:
+    def set_values(self, values: tuple[float, ...]) -> None:
         """`set_param` for a value tuple (what the evaluator calls for any family)."""
         if len(values) != 1:
             raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
         self.set_param(values[0])
 
-    def prepare_values(self, values: tuple[float]) -> PreparedParam:
+    def prepare_values(self, values: tuple[float, ...]) -> PreparedParam:
         """`prepare_param` for a value tuple (the sim node's interface to every family)."""
         if len(values) != 1:
             raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
@@ -434,7 +458,7 @@ def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | N
     """
     spec = get_sim_family(family)
     if spec.name in GOAL_FAMILIES:
-        from sim_node.sawyer import SawyerPegEnv   # sawyer imports this module
+        from sim_node.sawyer import SawyerPegEnv   # the Sawyer scene loads for its family only
         if not options.pop('reward_in_obs', True):
             raise ValueError(f'{family} observes the reward: reward_in_obs cannot be off')
         return SawyerPegEnv(values, seed=seed, **options)

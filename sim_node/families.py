@@ -12,7 +12,7 @@ Every family describes its live parameters the same way (`live_params`, a
 tuple of `LiveParam`), and the sim node reads only that: a family's values
 are a tuple in `param_names` order, through the sim node, the trainer, the
 controllers and the adaptation report (`get_sim_family`, `sim_node.env.make_env`).
-`get_family` is for what needs a dm_control family (`ParamEnv`, the repro scripts).
+`get_family` is for what needs a dm_control family (`ParamEnv`, the research/analysis scripts).
 """
 
 from __future__ import annotations
@@ -100,6 +100,41 @@ def _finger_distal_length(xml: str, length: float) -> str:
     return ElementTree.tostring(root, encoding='unicode')
 
 
+def _cartpole_pole_length(xml: str, length: float) -> str:
+    # The pole capsule spans 0..L along the hinge's z; its mass stays 0.1 kg
+    # (set on the class), so a longer pole swings slower with more inertia, as
+    # CaDM's pole-length CartPole. Contacts are off in this model, so a pole
+    # longer than the cart's height passes through the floor harmlessly.
+    root = ElementTree.fromstring(xml)
+    root.find(".//geom[@name='pole_1']").set('fromto', _fmt((0, 0, 0, 0, 0, length)))
+    return ElementTree.tostring(root, encoding='unicode')
+
+
+def _reacher_forearm_length(xml: str, length: float) -> str:
+    # The forearm (wrist to fingertip) of dm_control's two-link reacher
+    # (default 0.12). The target becomes a body on two unactuated slide
+    # joints, so its position is part of the joint state (observed), while
+    # the fingertip is not: where the tip is depends on the length, which
+    # a policy can learn only from the context (or be told, as the oracle).
+    root = ElementTree.fromstring(xml)
+    root.find(".//geom[@name='hand']").set('fromto', _fmt((0, 0, 0, length - 0.02, 0, 0)))
+    finger = root.find(".//body[@name='finger']")
+    finger.set('pos', _fmt((length, 0, 0)))
+    # The fingertip's tracking camera would be the one renderings pick (the first
+    # that moves); the fixed top view shows the arm, the target and the reach.
+    finger.remove(finger.find("camera[@name='hand']"))
+    worldbody = root.find('worldbody')
+    old_target = worldbody.find("geom[@name='target']")
+    worldbody.remove(old_target)
+    target = ElementTree.SubElement(worldbody, 'body', name='target', pos='0 0 .01')
+    for name, axis in (('target_x', '1 0 0'), ('target_y', '0 1 0')):
+        ElementTree.SubElement(target, 'joint', name=name, type='slide', axis=axis,
+                               damping='0', limited='false')
+    ElementTree.SubElement(target, 'geom', name='target', type='sphere', size='.015',
+                           material='target', contype='0', conaffinity='0')
+    return ElementTree.tostring(root, encoding='unicode')
+
+
 def _unchanged(xml: str, _value: float) -> str:
     return xml
 
@@ -124,7 +159,9 @@ class LiveParam:
         if value != value:
             return f'{self.name} must not be NaN'
         if not lo <= value <= hi:
-            return f'{self.name}={value:g} is outside the allowed range [{lo:g}, {hi:g}]'
+            # repr: the shortest text that is exactly this float, so a value just
+            # past a bound (3.000001 against 3) never reads as the bound itself.
+            return f'{self.name}={value!r} is outside the allowed range [{lo!r}, {hi!r}]'
         return None
 
 
@@ -196,7 +233,7 @@ FAMILIES: dict[str, FamilySpec] = {
             edit_xml=_walker_friction),
         # Not in the paper. In walker-walk-v0's range (0.8-1.35) a walking walker's
         # feet do not slip, and friction cannot be learned from k=5 transitions
-        # (repro/friction_identifiability.py). Here they do slip, so a live
+        # (research/analysis/friction_identifiability.py). Here they do slip, so a live
         # friction swap changes the dynamics the context encoder sees. Splits
         # shaped like Table 4: two training clusters, the gap between them for
         # interpolation, values on both sides for extrapolation.
@@ -235,7 +272,7 @@ FAMILIES: dict[str, FamilySpec] = {
         # (a policy trained at 1.0: 524 at 1.0, 432 at 0.2, 211 at 0.05, 101 at
         # 0.02), so its gait has to change with friction. Splits shaped like
         # Table 4; extrapolation below and above the training clusters. Whether
-        # the oracle beats sac here: repro/results/cheetah_slippery_100k/.
+        # the oracle beats sac here: research/results/cheetah_slippery_100k/.
         FamilySpec(
             name='cheetah-run-slippery', domain='cheetah', param_name='friction',
             param_unit='', default=0.15,
@@ -255,6 +292,46 @@ FAMILIES: dict[str, FamilySpec] = {
             live_range=(0.005, 0.6), alpha_psi=0.5,
             description='Finger spin; length of the distal finger segment (Table 2).',
             edit_xml=_finger_distal_length),
+        # Not in the paper: issue #36's pilots, families where the parameter may
+        # decide the return. Friction over RMA's width (trained 0.05-4.5,
+        # tested below and above), meant to be trained with swaps inside
+        # episodes (`train_swap_prob`).
+        FamilySpec(
+            name='cheetah-run-wide-friction', domain='cheetah', param_name='friction',
+            param_unit='', default=0.4,
+            train=(0.05, 0.1, 0.2, 0.4, 0.8, 1.5, 2.5, 4.5),
+            interpolation=(0.07, 0.3, 1.1, 3.5),
+            extrapolation=(0.02, 0.025, 0.03, 0.04, 5.0, 5.25, 5.5, 6.0),
+            live_range=(0.01, 8.0), alpha_psi=1.0,
+            description='Cheetah run; sliding friction of every foot-ground contact over '
+                        "RMA's width (this project, not the paper).",
+            edit_xml=_cheetah_friction),
+        # CaDM's pole-length CartPole ranges (train 0.8-1.2 of the default,
+        # tested at 0.3-0.4 and 1.6-1.7) on dm_control's swing-up.
+        FamilySpec(
+            name='cartpole-swingup-length', domain='cartpole', param_name='pole_length',
+            param_unit='m', default=1.0,
+            train=(0.8, 0.85, 0.9, 0.95, 1.05, 1.1, 1.15, 1.2),
+            interpolation=(0.875, 0.975, 1.0, 1.125),
+            extrapolation=(0.3, 0.33, 0.36, 0.4, 1.6, 1.63, 1.66, 1.7),
+            live_range=(0.2, 2.0), alpha_psi=1.0,
+            description="Cartpole swing-up; length of the pole, mass kept at 0.1 kg "
+                        "(CaDM's ranges; this project, not the paper).",
+            edit_xml=_cartpole_pole_length),
+        # A two-link arm reaching a target given in space, with the fingertip
+        # not observed: the joint angles that put the tip on the target
+        # depend on the forearm's length. Every target lies within reach of
+        # every length in the live range's core (radius 0.10-0.17).
+        FamilySpec(
+            name='reacher-length', domain='reacher', param_name='forearm_length',
+            param_unit='m', default=0.12,
+            train=(0.08, 0.09, 0.1, 0.11, 0.14, 0.15, 0.16, 0.17),
+            interpolation=(0.12, 0.125, 0.13, 0.135),
+            extrapolation=(0.06, 0.065, 0.07, 0.075, 0.18, 0.19, 0.2, 0.21),
+            live_range=(0.05, 0.25), alpha_psi=1.0,
+            description='Two-link reacher, target observed, fingertip not; length of the '
+                        'forearm, wrist to fingertip (this project, not the paper).',
+            edit_xml=_reacher_forearm_length),
         FamilySpec(
             name='cheetah-run-v1', domain='cheetah', param_name='target_velocity',
             param_unit='m/s', default=1.5,
@@ -368,10 +445,12 @@ def domain_model(domain: str) -> tuple[str, dict]:
     dm_control is imported here, not at module level: the family tables are
     read by processes that must not load MuJoCo (the controller nodes).
     """
-    from dm_control.suite import cheetah, finger, walker
+    from dm_control.suite import cartpole, cheetah, finger, reacher, walker
     loaders = {'walker': walker.get_model_and_assets,
                'cheetah': cheetah.get_model_and_assets,
-               'finger': finger.get_model_and_assets}
+               'finger': finger.get_model_and_assets,
+               'cartpole': cartpole.get_model_and_assets,
+               'reacher': reacher.get_model_and_assets}
     return loaders[domain]()
 
 
@@ -388,7 +467,7 @@ def format_task(value) -> str:
 
 
 def get_family(name: str) -> FamilySpec:
-    """Look a one-parameter dm_control family up by name (`ParamEnv`'s; the repro scripts)."""
+    """Look a one-parameter dm_control family up by name (`ParamEnv`'s; research/analysis)."""
     try:
         return FAMILIES[name]
     except KeyError:

@@ -1,7 +1,8 @@
 """The observation and action definitions the nodes share with the simulation, MuJoCo-free.
 
 `ObservationLayout` turns joint positions and velocities (a JointState) into
-the policy's observation; `check_action` validates an action. Plain numpy,
+the policy's observation; `check_action` validates an action; `StepResult`
+is what one control step of any env returns. Plain numpy,
 so the ROS plumbing and the controller nodes use them without loading
 MuJoCo (`sim_node.env.layout_from_model` reads a layout off a model).
 """
@@ -102,3 +103,18 @@ def check_action(action, action_dim: int) -> tuple[np.ndarray | None, str | None
     if not np.all(np.isfinite(array)):
         return None, 'action contains NaN or inf'
     return np.clip(array, -1.0, 1.0), None
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one control step returns."""
+
+    observation: np.ndarray
+    reward: float
+    terminal: bool
+    truncated: bool
+    # The action MuJoCo applied (validated, clipped to [-1, 1]).
+    applied_action: np.ndarray | None = None
+    # Set when MuJoCo became unstable: the episode was reset, and the
+    # observation is the new episode's first one.
+    instability: str | None = None

@@ -50,9 +50,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from sim_node.env import StepResult
 from sim_node.families import GOAL_FAMILIES, SAWYER_PEG
-from sim_node.layout import check_action, ObservationLayout
+from sim_node.layout import check_action, ObservationLayout, StepResult
 
 SPEC = GOAL_FAMILIES[SAWYER_PEG]
 FAMILY_NAME = SPEC.name

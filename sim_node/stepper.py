@@ -15,7 +15,7 @@ Every state it enters goes to the injected `publish(PublishedState)`; the
 injected `clock()` stamps when a state went out (the command latency and the
 lockstep timeout count from there). Each call returns a `StepOutcome` saying
 what happened, for the caller's log and meters. No rclpy here: the node
-(sim_node/node.py) converts messages and parameters and calls these methods.
+(zeus_ros/nodes/sim_node.py) converts messages and parameters and calls these methods.
 
 Modes. lockstep: publish a state, wait for the command answering its stamp
 (a command for any other stamp is stale, counted, ignored), step; with no
@@ -37,6 +37,16 @@ tick after its build. lockstep keeps its determinism: a step after a swap was
 requested waits for the build (the loop keeps serving messages and services
 meanwhile; `deadline` polls). A reset puts every queued value into force
 before the episode's first state.
+
+Pause. `pause(now)` stops the stepping (no tick, no timeout: nothing is
+published and the sim clock stands still); `resume(now)` runs freely again and
+`step(n, now)` runs exactly n steps, then pauses again (`budget` counts them
+down). While paused a lockstep command answering the state in force is held,
+and the first step after the pause is taken on it (none: the state waits for
+its command as ever, the timeout counted from the resume); realtime takes the
+first step at once, on the latest command. Time spent paused does not age a
+command or count towards the timeout. A value set while paused is in force at
+the first step after it (realtime waits for its build there, a few ms).
 """
 
 from __future__ import annotations
@@ -117,6 +127,9 @@ class SimStepper:
         self.latest_action_stamp = -1          # ...and the state it answers
         self._deferred: tuple[np.ndarray, int] | None = None  # lockstep step waiting for a swap
         self._poll_at = 0.0
+        self.budget: int | None = None   # steps still allowed: None runs freely, 0 is paused
+        self._paused_at: float | None = None
+        self._swap_first = False   # realtime: the first tick after a pause takes the swap
         # Totals since start (the node's diagnostics report them).
         self.counters = {'rejected': 0, 'stale': 0, 'timeouts': 0, 'instabilities': 0,
                          'steps': 0, 'answered': 0, 'late_ticks': 0, 'swaps': 0}
@@ -169,6 +182,44 @@ class SimStepper:
         self.swaps.push(values)
         return True
 
+    # -- pause, resume, step -----------------------------------------------------------
+    @property
+    def paused(self) -> bool:
+        """Whether stepping is stopped (by `pause`, or at the end of a `step`)."""
+        return self.budget == 0
+
+    def pause(self, now: float) -> bool:
+        """Stop stepping (a `step` under way ends here); False if it was paused already."""
+        if self.paused:
+            return False
+        self.budget, self._paused_at = 0, now
+        return True
+
+    def resume(self, now: float) -> bool:
+        """Run freely again; False if it was running already."""
+        if self.budget is None:
+            return False
+        self.budget = None
+        self._unpause(now)
+        return True
+
+    def step(self, steps: int, now: float) -> None:
+        """Run exactly `steps` (>= 1) steps from a pause, then pause again."""
+        if not self.paused or steps < 1:
+            raise ValueError(f'step({steps}) needs a paused stepper and steps >= 1')
+        self.budget = steps
+        self._unpause(now)
+
+    def _unpause(self, now: float) -> None:
+        if self._paused_at is not None:
+            idle = now - self._paused_at   # not counted: the timeout and a command's age
+            self.awaited_since += idle
+            self.latest_action_time += idle
+        self._paused_at = None
+        self.next_tick = now    # realtime: the first step at once
+        self._poll_at = now     # lockstep: a command held while paused steps now
+        self._swap_first = len(self.swaps) > 0
+
     # -- inputs ---------------------------------------------------------------------
     def on_command(self, stamp_ns: int, action: np.ndarray | None, now: float) -> StepOutcome:
         """Take a command answering the state stamped `stamp_ns` (`action` None: malformed)."""
@@ -191,6 +242,8 @@ class SimStepper:
 
     def deadline(self) -> float | None:
         """When the stepper must act without a command (clock seconds), or None."""
+        if self.paused:
+            return None
         if self.mode == 'realtime':
             return self.next_tick
         if self._deferred is not None:
@@ -238,7 +291,9 @@ class SimStepper:
         age = now - self.latest_action_time
         fresh = age <= self.command_timeout
         outcome.latency_s = age if fresh else 0.0
-        prepared = self.swaps.take_ready()   # never waits: the tick keeps its time
+        # Never waits (the tick keeps its time), but for a value set while paused.
+        prepared = self.swaps.take_waiting() if self._swap_first else self.swaps.take_ready()
+        self._swap_first = False
         if prepared is not None:
             self._apply(prepared, self._here(), outcome)
         self._step(self.latest_action if fresh else self._zero(), outcome)
@@ -246,6 +301,9 @@ class SimStepper:
     def _lockstep_step(self, action: np.ndarray, stamp: int, now: float,
                        outcome: StepOutcome) -> None:
         self.awaited_ns = None   # answered (or timed out): another command for it is stale
+        if self.paused:   # held for the first step after the pause
+            self._deferred = (action, stamp)
+            return
         if len(self.swaps):
             prepared = self.swaps.take_ready()
             if prepared is None:   # hold the step until the swap's physics is built
@@ -258,6 +316,10 @@ class SimStepper:
 
     def _step(self, action: np.ndarray, outcome: StepOutcome) -> None:
         self.counters['steps'] += 1
+        if self.budget is not None:
+            self.budget -= 1
+            if self.budget == 0:
+                self._paused_at = self.clock()
         outcome.stepped = True
         result = self.env.step(action)
         if result.instability is not None:

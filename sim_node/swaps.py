@@ -173,7 +173,8 @@ class SwapQueue:
     def _build(self, generation: int, value: Values) -> None:
         try:
             prepared, error = self._prepare(value), None
-        except Exception as failure:  # raised to the loop by the take that wanted it
+        # Whatever the build raises is handed, unchanged, to the take that wanted it.
+        except Exception as failure:  # noqa: BLE001
             prepared, error = None, failure
         with self._cond:
             if generation != self._generation or not self._values or self._values[0] != value:

@@ -1,9 +1,7 @@
 """Shared fixtures: an isolated DDS domain on loopback, node processes, rclpy helpers."""
 
-import fcntl
 import os
 from pathlib import Path
-import random
 import shutil
 import signal
 import subprocess
@@ -11,6 +9,8 @@ import sys
 import time
 
 import pytest
+
+from zeus_ros.ros.graph import use_free_domain
 
 REPO = Path(__file__).resolve().parents[1]
 INSTALL_BIN = REPO / 'install' / 'zeus_ros' / 'lib' / 'zeus_ros'
@@ -20,26 +20,8 @@ HELPERS = Path(__file__).resolve().parent / 'helpers'
 # a lock file per domain id keeps two runs on one machine from hearing each other.
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-_DOMAIN_LOCK = None
-
-
-def _claim_domain_id() -> int:
-    global _DOMAIN_LOCK
-    candidates = list(range(20, 100))
-    random.Random(os.getpid()).shuffle(candidates)
-    for domain_id in candidates:
-        handle = open(f'/tmp/zeus_ros_test_domain_{domain_id}.lock', 'w')
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        _DOMAIN_LOCK = handle
-        return domain_id
-    raise RuntimeError('no free ROS_DOMAIN_ID for the test suite')
-
-
-os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
+# Held for the session (zeus_ros.ros.graph: the same claim as `make demo`'s).
+_DOMAIN = use_free_domain()
 
 
 class NodeProcess:
@@ -137,7 +119,8 @@ def spin_until(node, predicate, timeout: float, period: float = 0.02):
 def small_checkpoint(tmp_path_factory):
     """Train a small walker-walk-v0 checkpoint: a few hundred real training steps."""
     out = tmp_path_factory.mktemp('train') / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', 'walker-walk-v0',
+    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                    '--family', 'walker-walk-v0',
                     '--steps', '300', '--out', str(out), '--eval-every', '0',
                     '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
     return out / 'checkpoint'
@@ -145,7 +128,7 @@ def small_checkpoint(tmp_path_factory):
 
 def train_tiny(out: Path, family: str, method: str, steps: int = 120) -> Path:
     """Train a tiny checkpoint a few real steps (small networks, one thread); return it."""
-    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', family,
+    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train', '--family', family,
                     '--method', method, '--steps', str(steps), '--out', str(out),
                     '--eval-every', '0', '--checkpoint-every', str(steps), '--quiet',
                     '--set', f'init_steps={min(100, steps - 20)}', 'hidden_dim=32',

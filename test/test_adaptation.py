@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from sim_node.env import ParamEnv
-from zeus_ros.adaptation import (build_report, OtherPhysicsWindow, r_squared, ReportConfig,
-                                 steps_to_cover, ZeroedContext)
+from sim_node.families import get_family
+from zeus_ros.learning_tools.adaptation import (build_report, held_out_values, OtherPhysicsWindow,
+                                                r_squared, ReportConfig, steps_to_cover,
+                                                ZeroedContext)
 from zeus_ros.deploy.inference import InferenceModel
-from zeus_ros.evaluate import run_episode
+from zeus_ros.learning_tools.evaluate import run_episode
 
 pytestmark = pytest.mark.ros   # starts processes of its own
 
@@ -23,7 +25,7 @@ QUICK = ReportConfig(episodes=1, max_steps=40, swap_step=20, swap_steps=40)
 
 def train_tiny(tmp_path_factory, method, family=FAMILY):
     out = tmp_path_factory.mktemp(method) / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', family,
+    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train', '--family', family,
                     '--method', method, '--steps', '150', '--out', str(out), '--eval-every', '0',
                     '--checkpoint-every', '150', '--quiet', '--set', 'init_steps=100',
                     'hidden_dim=32', 'batch_size_per_task=4', 'replay_capacity=2000',
@@ -76,6 +78,18 @@ def test_oracle_report_identifies_exactly_and_reacts_at_once(oracle):
     assert quicker.context_use_train is None and quicker.context_use == report.context_use
 
 
+def test_held_out_means_values_never_trained_on(tmp_path_factory):
+    spec = get_family('cheetah-run-v0')   # Table 3 prints 1.25, 1.4, 1.5 in both splits
+    assert held_out_values(spec, 'extrapolation') == (0.3, 0.4, 0.5, 0.55, 1.2)
+    assert held_out_values(spec, 'interpolation') == spec.interpolation
+    report = build_report(str(train_tiny(tmp_path_factory, 'oracle', 'cheetah-run-v0')),
+                          replace(QUICK, context_use_train=False))
+    extrapolation = next(r for r in report.returns if r.split == 'extrapolation')
+    assert sorted(extrapolation.per_value) == ['0.3', '0.4', '0.5', '0.55', '1.2']
+    assert extrapolation.left_out == ('1.25', '1.4', '1.5')
+    assert extrapolation.mean == pytest.approx(np.mean(list(extrapolation.per_value.values())))
+
+
 def test_sac_report_has_no_context_sections(sac):
     report = build_report(str(sac), QUICK)
     assert report.context_dim == 0 and report.identification is None
@@ -118,7 +132,8 @@ def test_a_shorter_deployment_window_changes_the_latent_only_once_the_window_is_
     assert np.abs(short.latents[6:] - full.latents[6:]).max() > 1e-4
     report = build_report(str(zeus_id), replace(QUICK, window=2, context_use_train=False))
     assert report.k == 2
-    refused = subprocess.run([sys.executable, '-m', 'zeus_ros.adaptation', '--weights',
+    refused = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.adaptation',
+                              '--weights',
                               str(zeus_id), '--window', '-1'], cwd=REPO, capture_output=True,
                              text=True)
     assert refused.returncode == 2 and 'window must be >= 0' in refused.stderr
@@ -165,11 +180,11 @@ def test_swap_coverage_of_a_two_parameter_change_is_measured_along_it():
 
 
 def test_cross_reader_rebuilds_the_windows_the_live_episode_read(zeus_id):
-    """The batched windows of repro/cross_reader.py are the live loop's, step for step.
+    """The batched windows of research/analysis/cross_reader.py are the live loop's, step for step.
 
     It decodes the transitions of a recorded episode in one batch.
     """
-    sys.path.insert(0, str(REPO / 'repro'))
+    sys.path.insert(0, str(REPO / 'research' / 'analysis'))
     from cross_reader import episode_rows, reader_estimates
     model = InferenceModel.load(zeus_id)
     record = run_episode(model, FAMILY, 0.2, seed=3, max_steps=40)
@@ -185,8 +200,8 @@ def up_osi(tmp_path_factory):
 
 
 def test_estimate_gap_feeds_the_true_parameter_where_the_estimate_sits(up_osi):
-    """repro/estimate_gap.py: with its probe the policy acts on the truth, not OSI's estimate."""
-    sys.path.insert(0, str(REPO / 'repro'))
+    """research/analysis/estimate_gap.py: its probe gives the policy the truth, not OSI's guess."""
+    sys.path.insert(0, str(REPO / 'research' / 'analysis'))
     from estimate_gap import TrueEstimate
     model = InferenceModel.load(up_osi)
     inferred = run_episode(model, FAMILY, 0.3, seed=1, max_steps=40)

@@ -1,22 +1,26 @@
 """Checkpoints: round trip, resume state, and refusal of corrupt or mismatched ones."""
 
+from dataclasses import replace
 import json
 import re
 import shutil
 
+from conftest import REPO
 import numpy as np
 import pytest
 from safetensors.torch import load_file, save_file
 import torch
 
 from sim_node.env import ParamEnv
-from zeus_ros.deploy.checkpoint import (CheckpointError, load_training_checkpoint, MODEL_FILE,
-                                 save_checkpoint, sha256_file, STATE_FILE)
-from zeus_ros.train import family_config as make_config
+from zeus_ros.deploy.checkpoint import (CheckpointError, load_metadata, load_training_checkpoint,
+                                        MODEL_FILE, save_checkpoint, sha256_file, STATE_FILE,
+                                        write_metadata)
+from zeus_ros.learning_tools.train import family_config as make_config
 from zeus_ros.deploy.inference import InferenceModel
+from zeus_ros.deploy.metadata import CheckpointMetadata, FileMeta
 from zeus_ros.core.replay import ReplayBuffer
 from zeus_ros.core.window import ContextWindow
-from zeus_ros.train import env_info, make_agent
+from zeus_ros.learning_tools.train import env_info, make_agent
 
 FAMILY = 'finger-spin-v0'
 
@@ -57,10 +61,9 @@ def trained_agent(env, cfg=None):
 
 def resign(checkpoint, name):
     """Record a replaced file's size and SHA-256 in the metadata (the hash check passes)."""
-    meta = json.loads((checkpoint / 'metadata.json').read_text())
-    meta['files'][name] = {'sha256': sha256_file(checkpoint / name),
-                           'bytes': (checkpoint / name).stat().st_size}
-    (checkpoint / 'metadata.json').write_text(json.dumps(meta))
+    meta = load_metadata(checkpoint)
+    file = FileMeta(sha256_file(checkpoint / name), (checkpoint / name).stat().st_size)
+    write_metadata(checkpoint, replace(meta, files={**meta.files, name: file}))
 
 
 @pytest.fixture()
@@ -74,11 +77,14 @@ def saved(env, tmp_path):
 
 def test_round_trip_inference_matches_agent(env, saved):
     agent, _, path = saved
-    meta = json.loads((path / 'metadata.json').read_text())
-    assert meta['family'] == FAMILY and meta['context']['k'] == 5
-    assert meta['obs_layout']['joint_names'] == list(env.joint_names)
-    assert meta['action_layout']['actuator_names'] == list(env.actuator_names)
-    assert meta['files'][MODEL_FILE]['sha256'] == sha256_file(path / MODEL_FILE)
+    meta = load_metadata(path)
+    assert meta.family == FAMILY and meta.context.k == 5
+    assert meta.obs_layout.joint_names == tuple(env.joint_names)
+    assert meta.action_layout.actuator_names == tuple(env.actuator_names)
+    assert meta.files[MODEL_FILE].sha256 == sha256_file(path / MODEL_FILE)
+    assert meta.steps.timestep == 7 and meta.replay_saved
+    # Written from the typed tree, read back to it: the file is what the tree serialises.
+    assert (path / 'metadata.json').read_text() == meta.to_json()
     model = InferenceModel.load(path, expected_family=FAMILY)
     w = ContextWindow(model.k, env.obs_dim, env.action_dim)
     obs = env.reset(seed=3)
@@ -181,7 +187,9 @@ def test_shape_mismatch_refused_even_with_matching_hash(saved):
     tensors[key] = torch.zeros(tensors[key].shape[0] + 1, tensors[key].shape[1])
     save_file(tensors, str(path / MODEL_FILE))
     resign(path, MODEL_FILE)
-    with pytest.raises(CheckpointError, match='shape mismatch'):
+    # Refused before the networks are built, naming the sizes that shape the tensor.
+    with pytest.raises(CheckpointError, match=rf'config\.hidden_dim.*does not match '
+                                              rf'{MODEL_FILE} \({re.escape(key)} is'):
         InferenceModel.load(path)
 
 
@@ -218,9 +226,13 @@ def test_pickle_payload_in_place_of_weights_is_refused_unexecuted(saved, env, tm
 
 
 @pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'zeus-no-context-loss',
-                                    'cadm', 'up-osi', 'hyperdynamics', 'zeus-osi'])
+                                    'cadm', 'up-osi', 'hyperdynamics', 'zeus-osi', 'rma'])
 def test_every_method_round_trips_and_resumes(env, tmp_path, method):
-    agent, replay = trained_agent(env, tiny(method))
+    # Methods that switch to their own estimate do so from the first update here,
+    # so the trainer's acting latent is the deployed one.
+    switch = {'rma': {'rma_student_after_updates': 0}, 'up-osi': {'osi_warmup_updates': 0}}
+    cfg = tiny(method, **switch.get(method, {}))
+    agent, replay = trained_agent(env, cfg)
     path = save_checkpoint(tmp_path / method, agent, env_info(env),
                            {'timestep': 1, 'env_steps': 1, 'update_step': 3, 'episodes': 0},
                            None, replay)
@@ -231,7 +243,7 @@ def test_every_method_round_trips_and_resumes(env, tmp_path, method):
     latent = model.context(rows, mask, true_param=0.05)
     expected = agent.act(obs, rows, mask, [0.05], deterministic=True)
     np.testing.assert_allclose(model.act(obs, latent), expected, atol=1e-6)
-    fresh = make_agent(tiny(method), env)
+    fresh = make_agent(cfg, env)
     load_training_checkpoint(path, fresh, ReplayBuffer(100, env.obs_dim, env.action_dim,
                                                        agent.config.context_length,
                                                        agent.row_dim))
@@ -278,7 +290,7 @@ def _put(path, value):
     (_drop(['files', MODEL_FILE, 'sha256']), 'sha256: missing'),
     (_drop(['param_name']), 'param_name: missing'),
     (_drop(['action_layout', 'actuator_names']), 'action_layout.actuator_names: missing'),
-    (_put(['context', 'k'], 0), 'context.k: must be >= 1'),
+    (_put(['context', 'k'], 0), 'context.k: must be in [1, 10000], got 0'),
     (_put(['context', 'k'], 'five'), 'context.k: must be an integer'),
     (_put(['context', 'k'], True), 'context.k: must be an integer'),
     (_put(['config'], []), 'config: must be an object'),
@@ -286,7 +298,8 @@ def _put(path, value):
     (_put(['obs_layout', 'joint_names'], 'rootz'), 'obs_layout.joint_names: must be a list'),
     (_put(['param_normalisation', 'scale'], float('nan')), 'scale: must be a finite number'),
     (_put(['context', 'row_dim'], 3), 'context.row_dim: must be 2'),
-    (_put(['action_layout', 'actuator_names'], ['a']), 'actuator_names: has 1 names'),
+    (_put(['action_layout', 'actuator_names'], ['a']),
+     'actuator_names: has 1 entries, must have 2'),
     (_put(['config', 'context_length'], 'x'), 'config'),
     (_put(['obs_layout', 'velocity_encoding'], ['raw']), 'velocity_encoding: has 1 entries'),
     (_put(['obs_layout', 'velocity_encoding'], 'raw'), 'velocity_encoding: must be a list'),
@@ -300,3 +313,18 @@ def test_malformed_metadata_refused_naming_the_field(saved, tmp_path, edit, fiel
     (bad / 'metadata.json').write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match=re.escape(field)):
         InferenceModel.load(bad)
+
+
+COMMITTED = sorted(p.parent.relative_to(REPO).as_posix() for folder in ('weights', 'research')
+                   for p in (REPO / folder).rglob('metadata.json'))
+
+
+@pytest.mark.parametrize('folder', COMMITTED)
+def test_every_committed_checkpoint_still_loads(folder):
+    """Shipped weights and committed run folders hold the flat config of their day."""
+    meta = json.loads((REPO / folder / 'metadata.json').read_text())
+    assert InferenceModel.load(REPO / folder, expected_family=meta['family']).k >= 1
+    parsed = CheckpointMetadata.parse(meta).zeus_config()
+    assert parsed.method == meta['config'].get('method', 'zeus')
+    assert all(meta['config'][k] == v for k, v in parsed.to_dict().items()
+               if k in meta['config'])   # what was written is what is read

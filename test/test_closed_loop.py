@@ -7,7 +7,7 @@ from sim_driver import (assert_same_rewards, COLLECT_QOS, collect, episode_rewar
                         LockstepDriver, start_node, WALKER_ACTUATORS as ACTUATORS,
                         wait_loop_running, WALKER_WEIGHTS)
 from zeus_msgs.msg import Context, StepInfo
-from zeus_ros.evaluate import run_episode
+from zeus_ros.learning_tools.evaluate import run_episode
 from zeus_ros.deploy.inference import InferenceModel
 
 
@@ -162,7 +162,7 @@ def test_a_policy_that_observes_the_reward_runs_through_the_nodes_bit_exactly(
 
 
 @pytest.mark.parametrize('method', ['sac', 'oracle', 'zeus-id', 'cadm', 'up-osi',
-                                    'hyperdynamics', 'zeus-no-context-loss', 'zeus-osi'])
+                                    'hyperdynamics', 'zeus-no-context-loss', 'zeus-osi', 'rma'])
 def test_every_methods_checkpoint_runs_through_the_nodes_bit_exactly(loop, ros_node,
                                                                       method_checkpoints,
                                                                       method):

@@ -10,9 +10,9 @@ from rclpy.context import Context
 from sim_driver import (assert_same_rewards, collect, episode_rewards, FAMILY,
                         LockstepDriver, WALKER_WEIGHTS)
 from zeus_msgs.msg import StepInfo
-from zeus_ros.bringup import node_commands, parse_args as bringup_args
+from zeus_ros.ros_tools.bringup import node_commands, parse_args as bringup_args
 from zeus_ros.deploy.inference import InferenceModel
-from zeus_ros.evaluate import run_episode
+from zeus_ros.learning_tools.evaluate import run_episode
 
 NODE_NAMES = {'sim_node', 'context_node', 'policy_node'}
 
@@ -76,14 +76,18 @@ def test_bringup_composed_is_one_process_with_each_parameter_named_by_its_node()
                                            '--mode', 'realtime', '--thread-priority', '5']))
     assert list(commands) == ['composed']
     argv = commands['composed']
-    assert argv[1:3] == ['-m', 'zeus_ros.composed']
+    assert argv[1:3] == ['-m', 'zeus_ros.ros_tools.composed']
     assert 'sim_node:mode:=realtime' in argv and 'policy_node:thread_priority:=5' in argv
     assert f'context_node:weights:={WALKER_WEIGHTS.resolve()}' in argv
     assert not any(arg.startswith(('mode:=', 'weights:=')) for arg in argv)
+    assert 'context_node:backend:=torch' in argv and 'policy_node:backend:=torch' in argv
+    onnx = node_commands(bringup_args(['--weights', str(WALKER_WEIGHTS), '--backend', 'onnx']))
+    for node in ('context_node', 'policy_node'):
+        assert 'backend:=onnx' in onnx[node], onnx[node]
 
 
 def test_bringup_takes_a_bare_value_or_named_values_and_refuses_the_rest():
-    from zeus_ros.bringup import initial_values
+    from zeus_ros.ros_tools.bringup import initial_values
     assert initial_values('walker-walk-v0', ['1.2']) == {'friction': 1.2}
     assert initial_values('walker-walk-v0', ['friction=0.9']) == {'friction': 0.9}
     assert initial_values('sawyer-peg-v0', ['goal_x=0.6', 'goal_y=0.07']) == {
@@ -110,7 +114,7 @@ def _composed_launch_arguments(*values):
 
 def test_launch_composed_gives_each_node_its_parameters_over_the_config_file():
     arguments = _composed_launch_arguments(str(REPO / 'config' / 'zeus.yaml'),
-                                           'walker-walk-v1', '/w', 'realtime', '7')
+                                           'walker-walk-v1', '/w', 'realtime', '7', 'onnx')
     context = Context()
     rclpy.init(args=['composed', '--ros-args', *arguments], context=context)
     try:
@@ -126,4 +130,6 @@ def test_launch_composed_gives_each_node_its_parameters_over_the_config_file():
     assert overrides['sim_node']['command_timeout'] == 0.5   # from the config file
     assert 'weights' not in overrides['sim_node']
     assert overrides['context_node']['weights'] == overrides['policy_node']['weights'] == '/w'
+    assert overrides['context_node']['backend'] == overrides['policy_node']['backend'] == 'onnx'
+    assert 'backend' not in overrides['sim_node']
     assert {o['thread_priority'] for o in overrides.values()} == {7}

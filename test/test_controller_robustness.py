@@ -16,7 +16,7 @@ from sensor_msgs.msg import JointState
 from sim_node.env import ParamEnv
 from sim_driver import collect, COLLECT_QOS, FAMILY, start_node, wait_loop_running, WALKER_WEIGHTS
 from zeus_msgs.msg import Context, StepInfo
-from zeus_ros.context_node import ContextGuard
+from zeus_ros.nodes.context_node import ContextGuard
 from zeus_ros.ros.util import set_stamp, stamp_ns
 
 SLIPPERY_WEIGHTS = REPO / 'weights' / 'walker-walk-slippery-zeus'

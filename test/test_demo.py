@@ -5,6 +5,7 @@ recorded into rosbag2 bags (read back with rosbags), a plot and a GIF.
 """
 
 import json
+import re
 import subprocess
 import sys
 
@@ -16,8 +17,8 @@ from sensor_msgs.msg import JointState
 from bag_helpers import assert_consistent, assert_loop_qos, read_bag, robot_pixels
 from zeus_msgs.msg import StepInfo
 from zeus_ros.deploy.inference import InferenceModel
-from zeus_ros.demo import check_episode, DemoFailure, loop_closed, RECORDED_TOPICS
-from zeus_ros.evaluate import run_episode
+from zeus_ros.ros_tools.demo import check_episode, DemoFailure, loop_closed, RECORDED_TOPICS
+from zeus_ros.learning_tools.evaluate import run_episode
 
 pytestmark = pytest.mark.ros   # starts processes of its own
 
@@ -28,7 +29,8 @@ SCHEDULE = '0:1.0,333:0.4,666:1.7'
 def sac_checkpoint(tmp_path_factory):
     """Train a tiny context-free (method sac) walker-walk-v0 checkpoint."""
     out = tmp_path_factory.mktemp('train_sac') / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.train', '--family', 'walker-walk-v0',
+    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                    '--family', 'walker-walk-v0',
                     '--method', 'sac', '--steps', '300', '--out', str(out), '--eval-every', '0',
                     '--set', 'init_steps=100', 'hidden_dim=32', '--quiet'],
                    check=True, cwd=REPO)
@@ -36,7 +38,7 @@ def sac_checkpoint(tmp_path_factory):
 
 
 def run_demo(*args, timeout=420):
-    return subprocess.run([sys.executable, '-m', 'zeus_ros.demo', *map(str, args)],
+    return subprocess.run([sys.executable, '-m', 'zeus_ros.ros_tools.demo', *map(str, args)],
                           cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
 
@@ -180,9 +182,46 @@ def test_demo_refuses_a_reference_with_a_context(small_checkpoint, tmp_path):
 
 
 def test_demo_and_bringup_refuse_missing_weights_in_one_line(tmp_path):
-    for module in ('zeus_ros.demo', 'zeus_ros.bringup'):
+    for module in ('zeus_ros.ros_tools.demo', 'zeus_ros.ros_tools.bringup'):
         result = subprocess.run([sys.executable, '-m', module, '--weights', str(tmp_path)],
                                 cwd=REPO, capture_output=True, text=True, timeout=60)
         assert result.returncode == 1
         assert f'no checkpoint at {tmp_path}' in result.stderr
         assert 'Traceback' not in result.stderr
+
+
+def test_the_docs_friction_walker_figures_are_what_the_demo_prints(tmp_path):
+    """#38.3: a figure in the docs is checked against the command the docs give for it."""
+    text = (REPO / 'docs' / 'pages' / 'index.md').read_text()
+    command = re.search(r'DEMO_WEIGHTS=(\S+)\s+DEMO_REFERENCE=(\S+)\s+DEMO_SCHEDULE=(\S+)\s+'
+                        r'DEMO_SEED=(\d+)`\) returns (\S+) against (\S+)', text)
+    assert command, 'the friction walker paragraph changed: update this test'
+    weights, reference, schedule, seed, adaptive_total, reference_total = command.groups()
+    result = run_demo('--weights', weights, '--reference-weights', reference,
+                      '--schedule', schedule, '--seed', seed, '--out', tmp_path / 'out',
+                      '--video-every', 0)
+    assert result.returncode == 0, result.stdout + result.stderr
+    total = next(line for line in result.stdout.splitlines() if line.strip().startswith('total'))
+    assert total.split()[-2:] == [adaptive_total, reference_total], result.stdout
+
+
+def makefile_default(name: str) -> str:
+    match = re.search(rf'^{name} \?= (?:\$\(wildcard )?([^)\s]+)\)?$',
+                      (REPO / 'Makefile').read_text(), re.M)
+    assert match, f'Makefile: no default for {name}'
+    return match.group(1)
+
+
+def test_the_readme_figures_are_what_make_demo_prints(tmp_path):
+    """#36/#38.3: the README's `make demo` output is what the Makefile's defaults print."""
+    readme = (REPO / 'README.md').read_text()
+    total = next(line for line in readme.splitlines() if line.strip().startswith('total'))
+    weights, reference = makefile_default('DEMO_WEIGHTS'), makefile_default('DEMO_REFERENCE')
+    result = run_demo('--weights', weights, '--reference-weights', reference,
+                      '--schedule', makefile_default('DEMO_SCHEDULE'),
+                      '--seed', makefile_default('DEMO_SEED'), '--out', tmp_path / 'out',
+                      '--video-every', 0)
+    assert result.returncode == 0, result.stdout + result.stderr
+    printed = next(line for line in result.stdout.splitlines() if line.strip().startswith('total'))
+    assert printed.split()[-2:] == total.split()[-2:], result.stdout
+    assert 'reacher-length' in weights     # the default swaps a link length, not a reward target

@@ -29,7 +29,8 @@ TOPICS = ('/zeus/step', '/zeus/context', '/joint_states', '/camera/image_raw')
 def start_view(spawn, port: int = 0, name: str = 'foxglove_view'):
     # This checkout's zeus_ros first, not an older colcon install.
     path = os.pathsep.join([str(REPO), os.environ.get('PYTHONPATH', '')])
-    return spawn([sys.executable, '-m', 'zeus_ros.foxglove_view', '--port', str(port)], name,
+    return spawn([sys.executable, '-m', 'zeus_ros.ros_tools.foxglove_view', '--port', str(port)],
+                 name,
                  env=dict(os.environ, PYTHONPATH=path))
 
 

@@ -1,12 +1,16 @@
 """Learning core: context window, psi, losses and which parameters each loss trains."""
 
+from dataclasses import asdict
+
 import numpy as np
 import pytest
 import torch
 
 from zeus_ros.core.agent import Agent, param_normaliser
-from zeus_ros.train import family_config as make_config
-from zeus_ros.core.methods import ParamScale
+from zeus_ros.learning_tools.train import family_config as make_config
+from zeus_ros.core.config import (refuse_foreign_keys, setting_owners, settings_classes,
+                                   settings_fields, SHARED_KEYS, ZeusConfig)
+from zeus_ros.core.methods import METHODS, ParamScale
 from zeus_ros.core.methods.zeus import w2_diag_gaussians
 from zeus_ros.core.networks import ContextEncoder
 from zeus_ros.core.replay import ReplayBuffer
@@ -398,7 +402,7 @@ def test_zeus_id_reads_deltas():
 
 
 ALL_METHODS = ['zeus', 'zeus-no-context-loss', 'sac', 'oracle', 'zeus-id', 'cadm', 'up-osi',
-               'hyperdynamics', 'zeus-osi']
+               'hyperdynamics', 'zeus-osi', 'rma']
 
 
 @pytest.mark.parametrize('method', ALL_METHODS)
@@ -451,6 +455,82 @@ def test_up_osi_trains_on_the_true_parameter_and_deploys_its_estimate():
         assert no_grad(module(agent, name)), name
 
 
+def test_rma_teacher_is_shaped_by_td_and_the_adaptation_module_only_by_its_regression():
+    agent, b = make_agent('rma', rma_student_after_updates=1, context_length=K), make_batch()
+    m = agent.method
+    z = m.encode(b.ctx_rows, b.ctx_mask, b.param)
+    assert z.shape == (b.param.shape[0], 6)                  # extrinsics, not the parameter
+    zero_all(agent)
+    agent.critic_loss(b)[0].backward()
+    assert has_grad(m.mu) and no_grad(m.psi)                 # TD trains mu, never psi
+    zero_all(agent)
+    loss, estimate, metrics = m.model_loss(b)
+    loss.backward()
+    assert 'adaptation_loss' in metrics and has_grad(m.psi)
+    assert no_grad(m.mu)                                     # the student never moves the teacher
+    for name in ('phi', 'critic', 'actor'):
+        assert no_grad(module(agent, name)), name
+    assert torch.equal(m.acting_context(b.ctx_rows, b.ctx_mask, b.param), z)  # teacher acts
+    agent.update(b)
+    assert torch.equal(m.acting_context(b.ctx_rows, b.ctx_mask, b.param),
+                       m.psi(b.ctx_rows, b.ctx_mask))         # then its own estimates do
+    assert torch.equal(m.deployed_context(b.ctx_rows, b.ctx_mask, None),
+                       m.psi(b.ctx_rows, b.ctx_mask))
+
+
+def actor_loss_of(agent, b):
+    torch.manual_seed(1)            # the same action noise for every call
+    _, z, c, _ = agent.critic_loss(b)
+    c_actor = agent.method.actor_context(b, c)
+    return agent.actor_and_alpha_loss(z, c, c_actor)[0].item()
+
+
+@pytest.mark.parametrize('asymmetric', [False, True])
+def test_rma_asymmetric_actor_reads_the_estimate_and_the_critic_the_teacher(asymmetric):
+    agent, b = make_agent('rma', rma_student_after_updates=1, rma_asymmetric=asymmetric,
+                          context_length=K), make_batch()
+    m = agent.method
+    teacher = m.encode(b.ctx_rows, b.ctx_mask, b.param)
+    assert torch.equal(m.actor_context(b, teacher), teacher)    # before the switch: teacher
+    agent.update(b)                                              # past the switch
+    estimate = m.psi(b.ctx_rows, b.ctx_mask)
+    read = m.actor_context(b, teacher)
+    following = m.actor_context(b, teacher, following=True)
+    assert torch.equal(read, estimate if asymmetric else teacher)
+    assert torch.equal(following, m.psi(b.next_ctx_rows, b.next_ctx_mask)
+                       if asymmetric else teacher)
+    before = actor_loss_of(agent, b)
+    with torch.no_grad():                                        # move psi alone
+        for p in m.psi.parameters():
+            p.add_(0.5)
+    assert (actor_loss_of(agent, b) != before) == asymmetric     # the actor depends on psi
+    zero_all(agent)
+    agent.critic_loss(b)[0].backward()
+    assert no_grad(m.psi)                                        # TD never trains psi
+
+
+def test_rma_raw_parameter_ablation_regresses_the_normalised_parameter():
+    agent, b = make_agent('rma', rma_latent=False, context_length=K), make_batch()
+    m = agent.method
+    assert m.mu is None and not m.critic_trains_context and m.context_dim == 1
+    assert torch.allclose(m.encode(b.ctx_rows, b.ctx_mask, b.param), (b.param - 0.8) / 0.55)
+    assert m.decode(m.psi(b.ctx_rows, b.ctx_mask)).shape == (b.param.shape[0], 1)
+
+
+def test_temporal_psi_reads_order_and_ignores_padding():
+    agent = make_agent('zeus-id', context_encoder='temporal')
+    psi = agent.method.psi
+    assert psi.temporal
+    rows = torch.randn(2, K, ROW)
+    mask = torch.ones(2, K, dtype=torch.bool)
+    mask[1, K - 2:] = False
+    c = psi(rows, mask)
+    padded = rows.clone()
+    padded[1, K - 2:] = 1e3                       # what the padding holds does not matter
+    assert torch.allclose(psi(padded, mask), c, atol=1e-6)
+    assert not torch.allclose(psi(rows.flip(1), mask.flip(1)), c, atol=1e-4)  # order does
+
+
 def test_hyperdynamics_generates_per_context_weights_trained_through_the_encoder():
     agent, b = make_agent('hyperdynamics'), make_batch()
     m = agent.method
@@ -501,7 +581,7 @@ def test_zeus_osi_reads_its_estimate_off_the_latent_and_learns_it_through_psi_on
     torch.manual_seed(1)
     base = ZeusIdMethod.model_loss(m, b, perm)[0]
     head = ((m.decode(c) - m.param.normalise(b.param)) ** 2).mean()
-    assert torch.allclose(loss - base, m.cfg.id_weight * head, atol=1e-4)
+    assert torch.allclose(loss - base, m.settings.id_weight * head, atol=1e-4)
     assert 'decoder_loss' in metrics
     zero_all(agent)
     head.backward()
@@ -569,7 +649,7 @@ def test_relational_psi_is_order_and_padding_invariant_and_reads_the_other_rows(
         left = pair(a, b, module) + pair(c, d, module)
         right = pair(a, d, module) + pair(c, b, module)
         assert torch.allclose(left, right, atol=1e-5) == additive
-    assert agent.config.context_encoder == 'relational'
+    assert agent.config.method_settings.context_encoder == 'relational'
     with pytest.raises(ValueError, match='context_encoder'):
         tiny_config('zeus-id', context_encoder='attention')
 
@@ -628,3 +708,47 @@ def test_a_replay_saved_with_one_dimensional_parameters_loads_as_one_column():
     restored = ReplayBuffer(64, OBS, ACT, K, ROW, seed=0)
     restored.load_state_arrays(arrays)
     np.testing.assert_array_equal(restored.param, buf.param)
+
+
+@pytest.mark.parametrize('method', sorted(METHODS))
+def test_every_method_declares_the_metrics_its_update_returns(method):
+    """The train log's columns come from these names: an undeclared metric is a late column."""
+    agent, b = make_agent(method), make_batch()
+    returned = set(agent.update(b)) | set(agent.update(b))   # the actor steps every 2nd update
+    silent = {'context_loss'} if agent.config.alpha_psi == 0 else set()   # the ablation's
+    assert returned == set(agent.metric_names()) - silent
+    assert len(agent.metric_names()) == len(set(agent.metric_names()))
+
+
+def test_each_method_owns_its_settings_and_the_shared_config_does_not_hold_them():
+    owners = setting_owners()
+    assert not set(owners) & set(SHARED_KEYS)   # one flat namespace on disk
+    for key in ('backward_weight', 'osi_warmup_updates', 'rma_latent',
+                'rma_student_after_updates', 'hyper_model_hidden', 'metric_normalise',
+                'dynamics_loss'):
+        assert len({METHODS[m].settings_class.__module__ for m in owners[key]}) == 1, key
+    assert set(owners['context_encoder']) == {'zeus-id', 'zeus-osi', 'cadm', 'up-osi',
+                                              'hyperdynamics', 'rma'}
+    for name, method in METHODS.items():   # every preset names a field the method has
+        refuse_foreign_keys(name, method.config_defaults)
+    assert make_agent('cadm', backward_weight=0.25).method.settings.backward_weight == 0.25
+    with pytest.raises(ValueError, match='backward_weight is a setting of method cadm'):
+        tiny_config('zeus', backward_weight=0.25)
+
+
+def test_an_old_flat_config_with_every_methods_keys_still_builds_each_method():
+    """Checkpoints written before the split hold every method's settings in one dict."""
+    every = {k: v for cls in settings_classes() for k, v in asdict(cls()).items()}
+    for name in METHODS:
+        flat = {**tiny_config(name).to_dict(), **every, 'method': name}
+        if name == 'zeus-no-context-loss':
+            flat['alpha_psi'] = 0.0
+        cfg = ZeusConfig.from_dict(flat)
+        assert type(cfg.method_settings) is METHODS[name].settings_class
+        assert set(cfg.to_dict()) == set(SHARED_KEYS) | set(settings_fields(name))
+        assert ZeusConfig.from_dict(cfg.to_dict()) == cfg
+    zeus = {**tiny_config('zeus').to_dict(), **every}
+    with pytest.raises(ValueError, match='context_input'):   # another method's key, bad value
+        ZeusConfig.from_dict({**zeus, 'context_input': 'bogus'})
+    with pytest.raises(ValueError, match='unknown config keys'):
+        ZeusConfig.from_dict({**zeus, 'no_such_key': 1})

@@ -5,11 +5,11 @@ import math
 import numpy as np
 import pytest
 from sim_node.env import ParamEnv
-from sim_node.protocol import RecentCounts
+from zeus_ros.ros.protocol import RecentCounts
 from zeus_ros.core.window import ContextWindow
-from zeus_ros.ros.pairing import (BadMessage, DUPLICATE, JUMP, layout_from_metadata, NEXT,
-                                  observation_from_message, OUTLIER, RESTART, StampFollower,
-                                  StateContextPairer, TransitionAssembler)
+from zeus_ros.ros.pairing import (BadMessage, DUPLICATE, JUMP, NEXT, observation_from_message,
+                                  OUTLIER, RESTART, StampFollower, StateContextPairer,
+                                  TransitionAssembler)
 
 K = 5
 NS = 1_000_000_000
@@ -261,14 +261,3 @@ def test_recent_counts_forget_a_gap_after_the_window():
     assert recent.problem(12.0, {'gaps': 1, 'dropped': 0}) is None
     assert recent.rises(13.0, {'gaps': 1, 'dropped': 4}) == {'gaps': 0, 'dropped': 4}
 
-
-def test_a_layout_with_dropped_velocities_comes_back_from_the_metadata():
-    # What a Sawyer checkpoint will carry: its commanded position has no velocity.
-    from sim_node.sawyer import LAYOUT
-    obs = {'obs_dim': LAYOUT.size, 'joint_names': list(LAYOUT.joint_names),
-           'position_encoding': list(LAYOUT.position_encoding),
-           'reward_in_observation': True, 'velocity_encoding': list(LAYOUT.velocity_encoding)}
-    assert layout_from_metadata({'obs_layout': obs}) == LAYOUT
-    del obs['velocity_encoding']     # read as "all kept": then the size disagrees
-    with pytest.raises(ValueError, match='observations'):
-        layout_from_metadata({'obs_layout': obs})

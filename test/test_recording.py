@@ -14,7 +14,7 @@ from rosbags.interfaces import QosHistory, QosReliability
 from sensor_msgs.msg import JointState
 import yaml
 from zeus_msgs.msg import StepInfo
-from zeus_ros.recording import BagRecorder, BagWriter, TopicSpec
+from zeus_ros.ros_tools.recording import bag_summary, BagRecorder, BagWriter, TopicSpec
 from zeus_ros.ros.util import LOOP_QOS
 
 
@@ -58,6 +58,11 @@ def test_bag_directory_is_read_by_rosbags(tmp_path):
     assert list(last.param_values) == [7.0] and last.header.stamp.sec == 6
     assert list(bag.messages['/joint_states'][4].position) == [4.0, 2.0]
     assert [len(bag.qos[t]) for t in bag.types] == [1, 2, 1]
+    # the pip-only `ros2 bag info`
+    summary = bag_summary(bag_dir)
+    assert 'messages: 14' in summary and 'ros distro: jazzy' in summary
+    assert '  /zeus/step | zeus_msgs/msg/StepInfo | 7 messages' in summary.splitlines()
+    assert '  /unused | sensor_msgs/msg/JointState | 0 messages' in summary.splitlines()
     for profiles in bag.qos.values():
         assert_loop_qos(profiles)
     assert bag.hashes['/joint_states'].startswith('RIHS01_')

@@ -13,8 +13,8 @@ import pytest
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
-from zeus_ros import demo
-from zeus_ros.recording import BagWriter, read_episode
+from zeus_ros.ros_tools import demo
+from zeus_ros.ros_tools.recording import BagWriter, read_episode
 from zeus_ros.ros.util import LOOP_QOS
 
 pytestmark = pytest.mark.ros   # starts processes of its own
@@ -61,7 +61,8 @@ def episode_bag(tmp_path_factory):
 
 def render(bag_dir, out, gl: str, *extra):
     return subprocess.run(
-        [sys.executable, '-m', 'zeus_ros.recording', 'video', str(bag_dir), str(out), *extra],
+        [sys.executable, '-m', 'zeus_ros.ros_tools.recording', 'video', str(bag_dir), str(out),
+         *extra],
         cwd=REPO, env=dict(os.environ, MUJOCO_GL=gl), capture_output=True, text=True,
         timeout=180)
 

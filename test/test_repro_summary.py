@@ -1,4 +1,4 @@
-"""repro/summarize_runs.py: the README's adaptation tables over seeds, from committed reports."""
+"""research/analysis/summarize_runs.py: adaptation tables over seeds, from committed reports."""
 
 import json
 import os
@@ -9,6 +9,8 @@ import sys
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+ANALYSIS = REPO / 'research' / 'analysis'
+SUMMARIZE = ANALYSIS / 'summarize_runs.py'
 
 
 def _report(folder: Path, train: float, interp: float, r2: float | None,
@@ -26,7 +28,7 @@ def test_groups_seeds_and_gives_mean_and_standard_error(tmp_path):
     _report(tmp_path / 'cv1-zeus-s2', -700.0, -800.0, 0.7)
     _report(tmp_path / 'cv1-sac-s1', -900.0, -850.0, None)
     (tmp_path / 'cv1-zeus-s3').mkdir()          # trained, not yet reported
-    out = subprocess.run([sys.executable, str(REPO / 'repro' / 'summarize_runs.py'),
+    out = subprocess.run([sys.executable, str(SUMMARIZE),
                           str(tmp_path)], check=True, capture_output=True, text=True,
                          env=os.environ | {'PYTHONPATH': str(REPO)}).stdout
     rows = {line.split(' | ')[0].strip('| '): line for line in out.splitlines()
@@ -40,7 +42,7 @@ def test_groups_seeds_and_gives_mean_and_standard_error(tmp_path):
 
 
 def _summary(folder: Path) -> str:
-    return subprocess.run([sys.executable, str(REPO / 'repro' / 'summarize_runs.py'),
+    return subprocess.run([sys.executable, str(SUMMARIZE),
                            str(folder)], check=True, capture_output=True, text=True,
                           env=os.environ | {'PYTHONPATH': str(REPO)}).stdout
 
@@ -98,7 +100,7 @@ def _eval_log(folder: Path, returns: list[float]) -> None:
 
 
 def test_learning_curves_average_the_seeds_of_a_group_over_their_common_steps(tmp_path):
-    from zeus_ros.sweep_results import mean_curve, read_curve
+    from zeus_ros.learning_tools.sweep_results import mean_curve, read_curve
     _eval_log(tmp_path / 'cv0-zeus-s1', [10.0, 30.0, 50.0])
     _eval_log(tmp_path / 'cv0-zeus-s2', [20.0, 50.0])          # still training
     runs = {s: read_curve(tmp_path / f'cv0-zeus-s{s}' / 'eval_log.csv') for s in (1, 2)}
@@ -108,14 +110,14 @@ def test_learning_curves_average_the_seeds_of_a_group_over_their_common_steps(tm
     np.testing.assert_allclose(sem, [5.0, 10.0])
     assert mean_curve(runs, 'extrapolation') is None
     png = tmp_path / 'curves.png'
-    subprocess.run([sys.executable, str(REPO / 'repro' / 'summarize_runs.py'), str(tmp_path),
+    subprocess.run([sys.executable, str(SUMMARIZE), str(tmp_path),
                     '--curves', str(png)], check=True, capture_output=True,
                    env=os.environ | {'PYTHONPATH': str(REPO)})
     assert png.stat().st_size > 1000
 
 
 def test_window_tradeoff_tabulates_each_window_over_runs():
-    sys.path.insert(0, str(REPO / 'repro'))
+    sys.path.insert(0, str(ANALYSIS))
     from window_tradeoff import figures, markdown
 
     def report(k, r2, steps):
@@ -133,10 +135,38 @@ def test_window_tradeoff_tabulates_each_window_over_runs():
 
 
 def test_estimate_gap_table_gives_the_mean_over_runs():
-    sys.path.insert(0, str(REPO / 'repro'))
+    sys.path.insert(0, str(ANALYSIS))
     from estimate_gap import render, ValueFigures
     one = [ValueFigures(1.0, -300.0, -250.0, 1.1), ValueFigures(2.0, -310.0, -240.0, 2.1)]
     two = [ValueFigures(1.0, -320.0, -250.0, 1.1), ValueFigures(2.0, -330.0, -240.0, 2.1)]
     out = render({'a': ('up-osi', one), 'b': ('up-osi', two)}, 'interpolation', 2, [])
     assert '| a | up-osi | -305.0 | -245.0 | 60.0 |' in out
     assert '| mean +- SE over 2 runs | | -315.0 +- 10.0 | -245.0 +- 0.0 | |' in out
+
+
+def test_gaps_table_tests_the_oracle_against_sac_and_the_share_each_method_closes(tmp_path):
+    for seed, (oracle, sac, rma) in enumerate([(700, 300, 620), (720, 320, 660),
+                                               (710, 280, 640)], start=1):
+        _report(tmp_path / f'rl-oracle-s{seed}', oracle, oracle + 10, 1.0)
+        _report(tmp_path / f'rl-sac-s{seed}', sac, sac + 10, None)
+        _report(tmp_path / f'rl-rma-s{seed}', rma, rma + 10, 0.9)
+    _report(tmp_path / 'cp-oracle-s1', 500, 500, 1.0)     # one seed: no verdict
+    _report(tmp_path / 'cp-sac-s1', 450, 450, None)
+    out = subprocess.run([sys.executable, str(SUMMARIZE),
+                          str(tmp_path), '--gaps'], check=True, capture_output=True, text=True,
+                         env=os.environ | {'PYTHONPATH': str(REPO)}).stdout
+    rows = [line for line in out.splitlines() if line.startswith('| rl | train')]
+    # oracle 710 +- 6, sac 300 +- 12: +410, apart; rma 640 closes (640 - 300) / 410 = 83 %
+    assert rows == ['| rl | train | 710 +- 6 (3) | 300 +- 12 (3) | +410 (+137 %) | yes | '
+                    'rma 83 % |']
+    assert '| cp | train | 500 (1) | 450 (1) | +50 (+11 %) | - | - |' in out
+
+
+def test_gaps_verdict_names_the_threshold_a_gap_meets():
+    sys.path.insert(0, str(ANALYSIS))
+    from summarize_runs import _verdict
+    assert _verdict(True, 410.0, 300.0) == 'yes'
+    assert _verdict(True, 67.0, 194.0) == '15 % only'       # +35 %, under 100 points
+    assert _verdict(True, 120.0, 1000.0) == '100 only'      # +12 %, over 100 points
+    assert _verdict(False, 410.0, 300.0) == 'no'            # standard errors overlap
+    assert _verdict(True, 20.0, 300.0) == 'no'

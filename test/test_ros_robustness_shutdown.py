@@ -5,6 +5,7 @@ forwards a SIGINT on top of the process group's, so two SIGINTs about 50 ms
 apart are what a node meets at every Ctrl-C there.
 """
 
+import itertools
 from pathlib import Path
 import signal
 import time
@@ -24,10 +25,14 @@ STARTED = {'sim_node': 'control period', 'context_node': 'weights from',
 PATTERNS = {'SIGINT twice': (signal.SIGINT, signal.SIGINT), 'SIGTERM': (signal.SIGTERM,),
             'SIGTERM then SIGINT': (signal.SIGTERM, signal.SIGINT)}
 GAP_S = 0.05
+_STARTED_COUNT = itertools.count()
 
 
 def start(spawn, name):
-    return spawn([installed_exe(name), '--ros-args', *NODES[name]], name)
+    # Each under a name of its own: a second node of a name on the graph is refused.
+    unique = f'{name}_{next(_STARTED_COUNT)}'
+    return spawn([installed_exe(name), '--ros-args', '-r', f'__node:={unique}', *NODES[name]],
+                 name)
 
 
 def send(proc, signals):

@@ -1,7 +1,7 @@
 """sim_node's parameters, resets and diagnostics as a ROS user meets them (issues #16, #17).
 
 Process tests on real DDS (the node as `ros2 run` starts it), plus unit tests
-of the ROS-free pieces they rest on (sim_node.protocol).
+of the ROS-free pieces they rest on (zeus_ros.ros.protocol).
 """
 
 import math
@@ -16,7 +16,7 @@ from rcl_interfaces.srv import GetParameters
 from sim_driver import LockstepDriver, WALKER_ACTUATORS as ACTUATORS
 from sim_node.env import ParamEnv
 from sim_node.families import get_family
-from sim_node.protocol import check_reset_request, loop_problem, RecentCounts, SEED_MAX
+from zeus_ros.ros.protocol import check_reset_request, loop_problem, RecentCounts, SEED_MAX
 from zeus_msgs.srv import Reset
 from zeus_ros.ros.util import call_service
 

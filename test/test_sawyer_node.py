@@ -16,7 +16,7 @@ from sim_node.families import table7_goals
 from sim_node.sawyer import ACTION_NAMES, ENTRIES, SawyerPegEnv
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.deploy.inference import InferenceModel
-from zeus_ros.evaluate import run_episode
+from zeus_ros.learning_tools.evaluate import run_episode
 from zeus_ros.ros.util import call_service
 
 FAMILY = 'sawyer-peg-v0'

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from sim_node.env import check_action, ParamEnv
 from sim_node.families import FAMILIES, get_family
-from sim_node.protocol import parse_command
+from zeus_ros.ros.protocol import parse_command
 
 
 def rollout(family, value, seed=4, steps=150):
@@ -134,3 +134,31 @@ def test_reward_in_the_observation_is_the_reward_into_the_state_and_changes_noth
         assert b.observation[-1] == b.reward == a.reward
     with_reward.reset()
     assert with_reward.observation()[-1] == 0.0
+
+
+@pytest.mark.parametrize('value, shown', [(3.000001, '3.000001'), (0.0499999999, '0.0499999999'),
+                                          (3.0000000000000004, '3.0000000000000004')])
+def test_refusal_shows_the_value_that_was_refused(value, shown):
+    """A value just past a bound is printed exactly, not rounded onto the bound (#39)."""
+    friction = next(p for p in get_family('walker-walk-v0').live_params
+                    if p.name == 'friction')
+    assert friction.live_range == (0.05, 3.0)
+    assert friction.check(value) == (f'friction={shown} is outside the allowed range '
+                                     '[0.05, 3.0]')
+
+
+def test_reacher_length_target_is_observed_and_still_and_the_tip_depends_on_the_length():
+    short, long_ = (ParamEnv('reacher-length', v, seed=0) for v in (0.08, 0.17))
+    obs = short.reset(seed=4)
+    long_.reset(seed=4)
+    names = short.joint_names
+    assert names == ('shoulder', 'wrist', 'target_x', 'target_y')
+    target = short.joint_positions()[2:]
+    assert 0.10 <= np.hypot(*target) <= 0.17 and np.array_equal(obs[3:5], target)
+    for _ in range(50):
+        a = np.array([1.0, -0.5])
+        r_short, r_long = short.step(a).reward, long_.step(a).reward
+    assert np.array_equal(short.joint_positions()[2:], target)     # no force moves it
+    tips = [e.physics.named.data.geom_xpos['finger', :2].copy() for e in (short, long_)]
+    assert np.linalg.norm(tips[0] - tips[1]) > 0.05                # same command, other tip
+    assert r_short != r_long

@@ -20,22 +20,25 @@ NODES = ['sim_node', 'context_node', 'policy_node']
 MINUTES = 0.75
 RESULT_KEYS = {'family', 'weights', 'param_name', 'live_range', 'minutes', 'duration_s',
                'machine', 'ros_domain_id', 'load_avg_start', 'load_avg_end', 'steps_total',
-               'per_minute', 'stalls', 'max_gap_s', 'crashes', 'restarts', 'rss', 'swaps',
+               'per_minute', 'stalls', 'max_gap_s', 'uncontrolled_steps',
+               'uncontrolled_spells', 'crashes', 'restarts', 'rss', 'swaps',
                'diagnostics', 'goals', 'passed', 'interference', 'log_dir'}
 RESTART_KEYS = {'node', 'cause', 'old_pid', 'new_pid', 'killed_at_s', 'spawned_at_s',
                 'startup_line_at_s', 'first_step_at_s', 'control_back_at_s',
                 'control_back_after_spawn_s', 'control_back_after_startup_s', 'upper_bound'}
 
 
-def run_soak(tmp_path):
+def run_soak(tmp_path, minutes=MINUTES, faults=('--restart-at', '0.15,0.4,0.65'),
+             timeout=300):
     # Restarts early enough that the last restarted node (torch import, weights,
     # discovery: 5-10 s on a loaded machine) is back before the end; RSS growth
     # from 6 s after each start, so that every process but the first sim has one.
-    argv = [sys.executable, str(REPO / 'bench' / 'soak.py'), '--minutes', str(MINUTES),
-            '--restart-at', '0.15,0.4,0.65', '--down-seconds', '1',
+    soak = REPO / 'research' / 'benchmarks' / 'soak.py'
+    argv = [sys.executable, str(soak), '--minutes', str(minutes),
+            *faults, '--down-seconds', '1',
             '--rss-baseline-minutes', '0.1', '--json', str(tmp_path / 'soak.json'),
             '--log-dir', str(tmp_path / 'logs')]
-    proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=150)
+    proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout)
     # 2: the soak did not run, or another loop shared its ROS domain.
     assert proc.returncode in (0, 1), proc.stdout + proc.stderr
     return proc, json.loads((tmp_path / 'soak.json').read_text())
@@ -78,7 +81,9 @@ def check_figures(result):
     assert all(lo <= v <= hi for v in swaps['values'])
     # /diagnostics was heard from every node.
     assert {name.split(':')[0] for name in result['diagnostics']['last']} >= set(NODES)
-    assert len(result['goals']) == 4
+    assert len(result['goals']) == 6
+    assert result['uncontrolled_steps'] == sum(m['uncontrolled_steps']
+                                               for m in result['per_minute'])
     assert result['passed'] == all(g['met'] for g in result['goals'])
 
 
@@ -90,3 +95,37 @@ def test_soak_reports_every_figure_and_restarts_each_node(tmp_path):
     verdict = [line for line in proc.stdout.splitlines() if line.startswith('soak result: ')]
     assert len(verdict) == 1
     assert verdict[0].startswith('soak result: ' + ('PASS' if result['passed'] else 'FAIL'))
+
+
+def goal(result, prefix):
+    found = [g for g in result['goals'] if g['name'].startswith(prefix)]
+    assert len(found) == 1, result['goals']
+    return found[0]
+
+
+def test_soak_fails_when_states_flow_but_nothing_controls_them(tmp_path):
+    """A stopped controller and a stopped sim fail the control goals (issue 39.3).
+
+    States still flow at 2/s on the sim's command timeout while the policy is
+    stopped: the stall goal alone passed such a run.
+    """
+    # 36 s, swaps at 10, 20 and 30 s: the policy is stopped over 5.4-11.4 s,
+    # the sim over 16.2-23.2 s (the swap at 20 s goes unanswered for its 5 s).
+    proc, result = run_soak(tmp_path, 0.6, ('--restart-at', 'none',
+                                            '--pause', 'policy_node:0.15:6',
+                                            '--pause', 'sim_node:0.45:7'),
+                            # The controllers' start (torch, weights) takes a minute or
+                            # more on a loaded machine; the run's clock starts after it.
+                            timeout=300)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    spell = goal(result, 'no uncontrolled spell')
+    assert not spell['met'], spell
+    longest = max(result['uncontrolled_spells'], key=lambda s: s['outside_restarts_s'])
+    assert 4.0 <= longest['outside_restarts_s'] <= 8.0, longest
+    assert longest['steps'] >= 5    # one per 0.5 s command timeout
+    assert result['uncontrolled_steps'] >= longest['steps']
+    assert result['per_minute'][0]['uncontrolled_steps'] == result['uncontrolled_steps']
+    swaps = goal(result, '0 unanswered swaps')
+    assert not swaps['met'] and result['swaps']['unanswered'] >= 1, result['swaps']
+    assert result['per_minute'][0]['unanswered_swaps'] == result['swaps']['unanswered']
+    assert 'goal FAIL: no uncontrolled spell' in proc.stdout

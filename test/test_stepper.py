@@ -160,7 +160,7 @@ def test_the_end_of_an_episode_starts_the_next_and_nothing_awaits_the_last_state
 
 def test_an_instability_restarts_the_episode_and_is_reported(rig, monkeypatch):
     stepper, published, clock, _ = rig
-    from sim_node.env import StepResult
+    from sim_node.layout import StepResult
     env = stepper.env
     real_step = env.step
 
@@ -374,3 +374,75 @@ def test_a_value_that_cannot_be_built_raises_to_the_loop_and_leaves_the_queue():
         assert len(swaps) == 0
     finally:
         swaps.close()
+
+
+# -- pause, resume, step (~/pause, ~/resume, ~/step) ------------------------------
+def test_paused_lockstep_holds_the_answer_and_steps_on_it_at_the_next_step(rig):
+    stepper, published, clock, _ = rig
+    assert stepper.pause(clock.now) and not stepper.pause(clock.now)
+    assert stepper.deadline() is None            # no timeout while paused
+    outcome = answer(stepper, published, clock, np.full(6, 0.3))
+    assert not outcome.stepped and len(published) == 1
+    clock.now += 10 * TIMEOUT                     # paused far past the timeout: no zero action
+    assert stepper.deadline() is None
+    stepper.step(1, clock.now)
+    assert stepper.due(clock.now)
+    assert stepper.on_deadline(clock.now).stepped
+    np.testing.assert_array_equal(published[-1].applied_action, np.full(6, 0.3))
+    assert stepper.paused and stepper.deadline() is None
+    assert stepper.counters['timeouts'] == 0
+
+
+def test_step_n_takes_exactly_n_steps_then_pauses_and_resume_runs_on(rig):
+    stepper, published, clock, _ = rig
+    stepper.pause(clock.now)
+    with pytest.raises(ValueError):
+        stepper.step(0, clock.now)
+    stepper.step(3, clock.now)
+    for action in actions(5):
+        answer(stepper, published, clock, action)
+    assert [s.step for s in published] == [0, 1, 2, 3] and stepper.paused
+    assert stepper.resume(clock.now) and not stepper.resume(clock.now)
+    with pytest.raises(ValueError):
+        stepper.step(2, clock.now)                # running: nothing to step
+    stepper.on_deadline(clock.now)                # the 4th answer, held while paused
+    assert published[-1].step == 4 and stepper.budget is None
+    np.testing.assert_array_equal(published[-1].applied_action, actions(5)[3])
+
+
+def test_paused_time_does_not_count_towards_the_lockstep_timeout(rig):
+    stepper, published, clock, _ = rig
+    clock.now += 0.4                              # 0.1 s of the timeout left
+    stepper.pause(clock.now)
+    clock.now += 5.0
+    stepper.resume(clock.now)
+    assert stepper.deadline() == pytest.approx(clock.now + 0.1)
+
+
+def test_paused_realtime_does_not_tick_and_steps_at_once_on_the_latest_command(rig):
+    stepper, published, clock, _ = realtime(rig)
+    stepper.on_command(published[-1].stamp_ns, np.full(6, 0.5), clock.now)
+    stepper.pause(clock.now)
+    assert stepper.deadline() is None
+    clock.now += 10.0                             # older than the timeout, but paused
+    stepper.step(2, clock.now)
+    assert stepper.deadline() == clock.now        # the first step right away
+    stepper.on_deadline(clock.now)
+    np.testing.assert_array_equal(published[-1].applied_action, np.full(6, 0.5))
+    stepper.on_deadline(stepper.deadline())
+    assert stepper.paused and len(published) == 3 and stepper.deadline() is None
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_a_value_set_while_paused_is_in_force_at_the_next_step(rig, mode):
+    stepper, published, clock, swaps = realtime(rig) if mode == 'realtime' else rig
+    stepper.pause(clock.now)
+    stepper.request_swap((0.4,))                  # not built yet: the next step waits for it
+    stepper.step(1, clock.now)
+    if mode == 'lockstep':                        # waits for the build, as ever
+        answer(stepper, published, clock, np.zeros(6))
+        swaps.finish()
+        stepper.on_deadline(stepper.deadline())
+    else:                                         # waits for the build this once
+        stepper.on_deadline(clock.now)
+    assert [s.param_values[0] for s in published] == [1.0, 0.4]

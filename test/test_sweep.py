@@ -11,7 +11,9 @@ import time
 import pytest
 import yaml
 
-from zeus_ros.sweep import run_dir, SweepConfig
+from sweep_helpers import assert_resumed_not_restarted, checkpoint_timestep, \
+    listening_beyond_loopback
+from zeus_ros.learning_tools.sweep_config import run_dir, SweepConfig
 
 pytestmark = pytest.mark.ros   # starts processes of its own
 
@@ -33,7 +35,8 @@ def write_sweep(tmp_path, steps, name='tiny'):
 
 def sweep(args, **kw):
     env = dict(os.environ, RAY_USAGE_STATS_ENABLED='0')
-    return subprocess.Popen([sys.executable, '-m', 'zeus_ros.sweep', *map(str, args)],
+    return subprocess.Popen([sys.executable, '-m', 'zeus_ros.learning_tools.sweep',
+                             *map(str, args)],
                             cwd=REPO, env=env, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
 
@@ -67,22 +70,23 @@ def test_killed_sweep_resumes_its_trials_and_gathers_results(tmp_path):
             (r / 'checkpoint' / 'metadata.json').exists() for r in runs):
         assert proc.poll() is None, proc.stdout.read()
         time.sleep(0.5)
+    # local Ray listens on loopback only, even where the default route is another interface
+    ours, outside = listening_beyond_loopback(proc.pid)
+    assert ours and not outside, outside
     os.killpg(proc.pid, signal.SIGKILL)   # the whole sweep, Ray included, mid-training
     proc.wait()
-    killed_at = {r: _timestep(r) for r in runs}
+    killed_at = {r: checkpoint_timestep(r) for r in runs}
     assert all(0 < t < 240 for t in killed_at.values()), killed_at
     resumed = sweep(['run', path, '--resume'])
     out, _ = resumed.communicate(timeout=420)
     assert resumed.returncode == 0, out[-3000:]
     for r in runs:
-        assert _timestep(r) == 240
-        log = list(csv.DictReader(open(r / 'train_log.csv')))
-        steps = [int(row['timestep']) for row in log]
+        assert checkpoint_timestep(r) == 240
         # the resumed trial continued from its checkpoint instead of starting over:
         # it repeats at most the one checkpoint interval (20 timesteps) it lost
-        assert steps.count(10) == 1 and sorted(set(steps)) == list(range(10, 250, 10))
-        assert len(steps) - len(set(steps)) <= 2
-    table = subprocess.run([sys.executable, '-m', 'zeus_ros.sweep', 'table', str(path)],
+        assert_resumed_not_restarted(r, steps=240, log_every=10, lost_rows=2)
+    table = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.sweep', 'table',
+                            str(path)],
                            cwd=REPO, capture_output=True, text=True, check=True).stdout
     assert '| sac |' in table and '| zeus-id |' in table
     rows = list(csv.DictReader(open(cfg.root / 'comparison.csv')))
@@ -90,20 +94,22 @@ def test_killed_sweep_resumes_its_trials_and_gathers_results(tmp_path):
     assert (cfg.root / 'curves_finger-spin-v0.png').stat().st_size > 1000
 
 
-def _timestep(run: Path) -> int:
-    from zeus_ros.deploy.checkpoint import load_metadata
-    return int(load_metadata(run / 'checkpoint')['steps']['timestep'])
-
-
 @pytest.mark.unit
 def test_the_report_table_takes_only_finished_runs_and_reuses_their_reports(tmp_path):
-    from zeus_ros.sweep_results import run_report
+    from dataclasses import replace
+    from zeus_ros.deploy.checkpoint import load_metadata, write_metadata
+    from zeus_ros.learning_tools.sweep_results import run_report
     run = tmp_path / 'run'
     (run / 'checkpoint').mkdir(parents=True)
     meta = run / 'checkpoint' / 'metadata.json'
-    meta.write_text('{"steps": {"timestep": 900}}')
+    shipped = load_metadata(REPO / 'weights' / 'cheetah-run-v0-sac')
+
+    def checkpoint_at(timestep):
+        write_metadata(run / 'checkpoint',
+                       replace(shipped, steps=replace(shipped.steps, timestep=timestep)))
+    checkpoint_at(900)
     assert run_report(run, episodes=1, steps=1000) is None     # still training
-    meta.write_text('{"steps": {"timestep": 1000}}')
+    checkpoint_at(1000)
     cached = run / 'adaptation.json'
     cached.write_text('{"returns": [], "identification": null}')
     os.utime(meta, (1, 1))                                   # the report is newer
@@ -111,7 +117,7 @@ def test_the_report_table_takes_only_finished_runs_and_reuses_their_reports(tmp_
 
 
 def test_the_final_evaluation_table_leaves_unfinished_runs_out_and_says_so():
-    from zeus_ros.sweep_results import Curve, markdown, table_rows
+    from zeus_ros.learning_tools.sweep_results import Curve, markdown, table_rows
     done = Curve((800, 1600), (100, 200), {'train': (10.0, 30.0)})
     other = Curve((800, 1600), (100, 200), {'train': (12.0, 50.0)})
     half = Curve((800,), (100,), {'train': (900.0,)})
@@ -124,7 +130,7 @@ def test_the_final_evaluation_table_leaves_unfinished_runs_out_and_says_so():
 
 @pytest.mark.unit
 def test_the_report_tables_give_success_rates_and_speed_errors_where_reports_have_them():
-    from zeus_ros.sweep_results import markdown, ReportFigures
+    from zeus_ros.learning_tools.sweep_results import markdown, ReportFigures
     rows = [{'family': 'sawyer-peg-v0', 'method': m, 'split': 'train', 'mean': 40.0, 'sem': 1.0,
              'seeds': 2, 'timestep': 100, 'unfinished': 0} for m in ('zeus', 'sac')]
     figures = {('sawyer-peg-v0', 'zeus'): ReportFigures(
@@ -138,7 +144,7 @@ def test_the_report_tables_give_success_rates_and_speed_errors_where_reports_hav
 
 @pytest.mark.unit
 def test_the_report_table_gives_context_use_at_the_train_values_only_where_measured():
-    from zeus_ros.sweep_results import markdown, ReportFigures
+    from zeus_ros.learning_tools.sweep_results import markdown, ReportFigures
     rows = [{'family': 'f', 'method': m, 'split': 'train', 'mean': 40.0, 'sem': 1.0,
              'seeds': 2, 'timestep': 100, 'unfinished': 0} for m in ('zeus', 'sac')]
     older = {('f', 'zeus'): ReportFigures({'train': [40.0, 50.0]}, [0.7, 0.9], [30.0, 50.0]),

@@ -6,12 +6,15 @@ from pathlib import Path
 import shutil
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from zeus_ros import evaluate, train
+from test_learning_core import make_agent, make_batch
+from zeus_ros.learning_tools import evaluate, train
 from zeus_ros.core.config import ZeusConfig
+from zeus_ros.core.methods import METHODS
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 
@@ -37,6 +40,8 @@ def test_training_writes_logs_and_checkpoint(run_dir):
     rows = list(csv.DictReader(open(run_dir / 'train_log.csv')))
     assert [int(r['timestep']) for r in rows] == [50, 100, 150]
     assert rows[-1]['critic_loss'] != '' and rows[0]['critic_loss'] == ''  # updates after 60
+    for metric in ('dynamics_loss', 'reward_loss', 'context_loss', 'decoder_loss'):
+        assert rows[-1][metric] != '', metric   # zeus's own metrics, columns by their names
     assert float(rows[-1]['env_steps']) == 150 * 8
     evals = list(csv.DictReader(open(run_dir / 'eval_log.csv')))
     assert len(evals) == 8 and all(r['split'] == 'train' for r in evals)
@@ -91,10 +96,10 @@ def test_run_episode_order_and_determinism(run_dir):
 
 
 def test_checkpoint_records_seed_and_run_arguments(run_dir):
-    meta = InferenceModel.load(run_dir).metadata
-    assert meta['seed'] == 3 and meta['run']['seed'] == 3
-    assert meta['run']['method'] == 'zeus' and meta['run']['overrides']['hidden_dim'] == 32
-    assert meta['steps']['wall_s'] > 0
+    meta = InferenceModel.load(run_dir).meta
+    assert meta.seed == 3 and meta.run.seed == 3
+    assert meta.run.method == 'zeus' and meta.run.overrides['hidden_dim'] == 32
+    assert meta.steps.wall_s > 0
 
 
 def test_periodic_evaluation_is_the_eval_clis_evaluator(run_dir):
@@ -110,15 +115,15 @@ def test_periodic_evaluation_is_the_eval_clis_evaluator(run_dir):
 def test_resume_continues_from_checkpoint(run_dir, tmp_path, capsys):
     own = tmp_path / 'run'
     shutil.copytree(run_dir, own)   # this test must not change the shared run
-    wall_before = InferenceModel.load(own).metadata['steps']['wall_s']
+    wall_before = InferenceModel.load(own).meta.steps.wall_s
     argv = ['--family', FAMILY, '--steps', '170', '--seed', '3', '--out', str(own),
             '--eval-every', '0', '--checkpoint-every', '1000', '--log-every', '10',
             '--quiet', '--resume', '--set', *TINY]
     assert train.main(argv) == 0
     assert 'resumed at timestep 150' in capsys.readouterr().out
     model = InferenceModel.load(own)
-    assert model.metadata['steps']['timestep'] == 170
-    assert model.metadata['steps']['wall_s'] > wall_before   # wall time keeps counting
+    assert model.meta.steps.timestep == 170
+    assert model.meta.steps.wall_s > wall_before   # wall time keeps counting
     # a different config cannot resume this run
     bad = [*argv, 'hidden_dim=64']
     assert train.main(bad) == 2
@@ -126,15 +131,55 @@ def test_resume_continues_from_checkpoint(run_dir, tmp_path, capsys):
         InferenceModel.load(own, expected_family='walker-walk-v0')
 
 
-def test_csv_log_keeps_the_header_a_resumed_run_started_with(tmp_path):
+def test_csv_log_keeps_the_columns_a_resumed_run_started_with_and_adds_new_ones(tmp_path):
     path = tmp_path / 'log.csv'
     old = train.CsvLog(path, ('a', 'b'))
     old.write({'a': 1, 'b': 2})
     old.close()
     resumed = train.CsvLog(path, ('a', 'new', 'b'))
     resumed.write({'a': 3, 'new': 9, 'b': 4})
+    resumed.write({'a': 5, 'late': 7})   # a name first seen after the header was written
     resumed.close()
-    assert list(csv.DictReader(open(path))) == [{'a': '1', 'b': '2'}, {'a': '3', 'b': '4'}]
+    assert next(csv.reader(open(path))) == ['a', 'b', 'new', 'late']
+    assert list(csv.DictReader(open(path))) == [
+        {'a': '1', 'b': '2', 'new': '', 'late': ''}, {'a': '3', 'b': '4', 'new': '9', 'late': ''},
+        {'a': '5', 'b': '', 'new': '', 'late': '7'}]
+
+
+def logged_row(out, metric_names: tuple[str, ...], metrics: list[dict]) -> dict:
+    """Write one train-log row of `metrics` (averaged, as the trainer does) and read it back."""
+    logs = train.TrainingLogs(out, metric_names)
+    for m in metrics:
+        logs.accumulate(m)
+    trainer = SimpleNamespace(timestep=1, env_steps=8, wall_s=lambda: 1.0,
+                              last_returns=np.full(2, np.nan))
+    logs.train_row(trainer, SimpleNamespace(set_postfix=lambda **kw: None))
+    logs.close()
+    return list(csv.DictReader(open(out / 'train_log.csv')))[-1]
+
+
+@pytest.mark.parametrize('method', sorted(METHODS))
+def test_every_metric_a_methods_update_returns_reaches_the_train_log(method, tmp_path):
+    agent, batch = make_agent(method), make_batch()
+    metrics = [agent.update(batch), agent.update(batch)]   # the actor steps every 2nd update
+    row = logged_row(tmp_path, agent.metric_names(), metrics)
+    returned = {k for m in metrics for k in m}
+    assert set(agent.method.metric_names) - {'context_loss'} <= returned
+    assert all(row[k] != '' for k in returned), row
+    assert not {'dynamics_mse'} & set(row)   # a column no method ever wrote
+
+
+def test_a_run_resumed_from_an_old_log_gains_its_methods_columns(tmp_path):
+    """A log started before the columns came from the metric names (cadm's were dropped)."""
+    old = ('timestep', 'env_steps', 'wall_s', 'env_steps_per_s', 'critic_loss', 'q1',
+           'actor_loss', 'alpha_loss', 'alpha', 'entropy', 'dynamics_loss', 'dynamics_mse',
+           'reward_loss', 'context_loss', 'decoder_loss')
+    (tmp_path / 'train_log.csv').write_text(','.join(old) + '\n' + '1,8' + ',' * 13 + '\n')
+    agent, batch = make_agent('cadm'), make_batch()
+    row = logged_row(tmp_path, agent.metric_names(), [agent.update(batch)])
+    rows = list(csv.DictReader(open(tmp_path / 'train_log.csv')))
+    assert next(csv.reader(open(tmp_path / 'train_log.csv')))[:len(old)] == list(old)
+    assert row['backward_loss'] != '' and rows[0]['backward_loss'] == '' and len(rows) == 2
 
 
 def test_repeated_set_options_accumulate_the_last_value_of_a_field_wins():
@@ -209,6 +254,38 @@ def test_downward_train_swaps_only_ever_lower_a_tasks_value(tmp_path):
         ZeusConfig(train_swap_direction='up').validate()
 
 
+@pytest.mark.parametrize('sampling', ['range', 'log-range'])
+def test_range_sampling_draws_every_episode_and_swap_inside_the_train_span(tmp_path, sampling):
+    overrides = train.parse_overrides([*TINY, 'episode_steps=5', 'train_swap_prob=0.2',
+                                       f'train_sampling={sampling}'])
+    trainer = train.Trainer(train.RunArgs(out=tmp_path / 'run', family=FAMILY, method='oracle',
+                                          steps=0, overrides=overrides))
+    lo, hi = min(trainer.values)[0], max(trainer.values)[0]
+    draw, drawn = trainer._draw_value, []
+    trainer._draw_value = lambda: drawn.append(draw()) or drawn[-1]
+    seen = {env.param_values for env in trainer.envs}
+    for _ in range(30):
+        trainer.collect()
+        trainer.timestep += 1
+        seen |= {env.param_values for env in trainer.envs}
+    seen |= set(drawn)
+    assert len(drawn) > 60                             # fresh values, not the 8 train ones
+    assert all(lo <= v[0] <= hi for v in seen)
+    assert not seen & set(trainer.values)
+    n = len(trainer.replay)                            # the replay records the value in force
+    recorded = trainer.replay.param[:n].reshape(-1, 1)
+    in_force = np.float32([v[0] for v in seen])
+    assert np.abs(recorded - in_force[None]).min(axis=1).max() == 0.0
+    values = np.float64([v[0] for v in drawn])
+    linear_middle, log_middle = (lo + hi) / 2, np.sqrt(lo * hi)
+    own, other = (log_middle, linear_middle) if sampling == 'log-range' \
+        else (linear_middle, log_middle)
+    assert 0.3 < np.mean(values < own) < 0.7           # uniform in its own scale
+    assert abs(np.mean(values < other) - 0.5) > 0.1    # and not in the other's
+    with pytest.raises(ValueError, match='train_sampling'):
+        ZeusConfig(train_sampling='grid').validate()
+
+
 def test_a_task_with_a_success_flag_logs_its_success_rate(tmp_path, capsys):
     """Sawyer-Peg-v0's periodic evaluation writes a success rate per goal and prints it."""
     argv = ['--family', 'sawyer-peg-v0', '--steps', '40', '--seed', '1', '--out', str(tmp_path),
@@ -225,7 +302,8 @@ def test_a_task_with_a_success_flag_logs_its_success_rate(tmp_path, capsys):
 def test_collected_run_with_weights_loads_from_the_results_folder(run_dir, tmp_path):
     """collect_runs --with-weights: the committed folder alone replays the policy."""
     repo = Path(__file__).resolve().parents[1]
-    subprocess.run([sys.executable, str(repo / 'scripts' / 'collect_runs.py'), str(tmp_path),
+    collect = repo / 'research' / 'analysis' / 'collect_runs.py'
+    subprocess.run([sys.executable, str(collect), str(tmp_path),
                     str(run_dir), '--with-weights'], check=True, capture_output=True,
                    env=os.environ | {'PYTHONPATH': str(repo)})
     collected = tmp_path / run_dir.name

@@ -27,6 +27,16 @@ def test_ament_index_lists_both_packages():
     assert (share / 'package.xml').is_file()
 
 
+def test_the_build_prints_no_stderr_even_where_bytecode_is_off():
+    # PYTHONDONTWRITEBYTECODE (set in some shells and containers) made setuptools
+    # warn on stderr at every build: colcon's "1 package had stderr output" (#38.5).
+    done = subprocess.run(['bash', 'scripts/setup.sh'], cwd=REPO, capture_output=True,
+                          text=True, env=dict(os.environ, PYTHONDONTWRITEBYTECODE='1'))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert 'Summary: 2 packages finished' in done.stdout, done.stdout
+    assert 'stderr output' not in done.stdout + done.stderr, done.stdout
+
+
 def test_declared_executables_are_installed_where_ros2_run_looks():
     names = declared_executables()
     assert 'sim_node' in names

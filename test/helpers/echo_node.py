@@ -25,9 +25,10 @@ class EchoNode(Node):
         return response
 
 
-def main():
+def run(make_node) -> None:
+    """Spin the node `make_node()` builds until SIGINT, then close it (other helpers use it)."""
     rclpy.init()
-    node = EchoNode()
+    node = make_node()
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -38,4 +39,4 @@ def main():
 
 
 if __name__ == '__main__':
-    main()
+    run(EchoNode)

@@ -41,6 +41,8 @@ from zeus_ros.core.window import row_dim
 CORE_INFERENCE_MODULES = ('phi', 'actor')
 CORE_TRAINING_MODULES = ('critic', 'critic_target', 'phi_target')
 CORE_OPTIMIZERS = ('critic_opt', 'actor_opt', 'alpha_opt')
+# The metrics the core's update returns; a method adds its own `metric_names`.
+CORE_METRICS = ('critic_loss', 'q1', 'actor_loss', 'alpha_loss', 'alpha', 'entropy')
 
 
 def param_normaliser(train_values) -> ParamScale:
@@ -121,6 +123,10 @@ class Agent:
         """Every network by name (inference and training ones)."""
         return {**self.inference_modules(), **self.training_modules()}
 
+    def metric_names(self) -> tuple[str, ...]:
+        """Every metric `update` may return: the core's, then the method's."""
+        return (*CORE_METRICS, *(m for m in self.method.metric_names if m not in CORE_METRICS))
+
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """Every optimiser by checkpoint name."""
         return {'critic_opt': self.critic_opt, 'actor_opt': self.actor_opt,
@@ -150,12 +156,14 @@ class Agent:
         return out[0] if single else out
 
     # -- losses ----------------------------------------------------------------
-    def critic_loss(self, b: Batch):
+    def critic_loss(self, b: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
+                                             dict[str, torch.Tensor]]:
         """TD loss of both Q heads; returns (loss, z, c, metrics), z/c carrying the graph."""
         c, cn = self.method.encode_pair(b, grad=self.method.critic_trains_context)
         with torch.no_grad():
             zn = self.phi(b.next_obs)
-            next_action, next_logp, _ = self.actor.sample(torch.cat([zn, cn], -1))
+            actor_next = self.method.actor_context(b, cn, following=True)
+            next_action, next_logp, _ = self.actor.sample(torch.cat([zn, actor_next], -1))
             ct = self.method.encode_target(b.next_ctx_rows, b.next_ctx_mask, b.param) \
                 if self.method.critic_trains_context else cn
             tq1, tq2 = self.critic_target(torch.cat([self.phi_target(b.next_obs), ct], -1),
@@ -167,10 +175,17 @@ class Agent:
         loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         return loss, z, c, {'critic_loss': loss.detach(), 'q1': q1.detach().mean()}
 
-    def actor_and_alpha_loss(self, z: torch.Tensor, c: torch.Tensor):
-        """Actor loss on DETACHED phi/latent (critic frozen by the caller) and alpha loss."""
+    def actor_and_alpha_loss(self, z: torch.Tensor, c: torch.Tensor,
+                             c_actor: torch.Tensor | None = None,
+                             ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Actor loss on DETACHED phi/latent (critic frozen by the caller) and alpha loss.
+
+        `c_actor`: the latent the actor reads when it is not the critic's `c`
+        (an asymmetric method); the critic judges the action with `c`.
+        """
         x = torch.cat([z.detach(), c.detach()], -1)
-        action, logp, _ = self.actor.sample(x)
+        x_actor = x if c_actor is None else torch.cat([z.detach(), c_actor.detach()], -1)
+        action, logp, _ = self.actor.sample(x_actor)
         q1, q2 = self.critic(x, action)
         actor_loss = (self.alpha.detach() * logp - torch.min(q1, q2)).mean()
         alpha_loss = (self.alpha * (-logp - self.target_entropy).detach()).mean()
@@ -186,9 +201,9 @@ class Agent:
             self.timers[name] = self.timers.get(name, 0.0) + now - start
         return now
 
-    def _actor_step(self, z, c) -> dict:
+    def _actor_step(self, z, c, c_actor) -> dict:
         self.critic.requires_grad_(False)
-        actor_loss, alpha_loss, metrics = self.actor_and_alpha_loss(z, c)
+        actor_loss, alpha_loss, metrics = self.actor_and_alpha_loss(z, c, c_actor)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_opt.step()
@@ -199,7 +214,7 @@ class Agent:
         metrics['alpha'] = self.alpha.detach()
         return metrics
 
-    def update(self, b: Batch, step: int | None = None) -> dict[str, torch.Tensor]:
+    def update(self, b: Batch) -> dict[str, torch.Tensor]:
         """One update of every component on a batch; returns 0-d metric tensors."""
         cfg = self.config
         self.update_step += 1
@@ -211,7 +226,9 @@ class Agent:
         self.critic_opt.step()
         t = self._tick('critic', t)
         if n % cfg.actor_update_freq == 0:
-            metrics.update(self._actor_step(z, c))
+            with torch.no_grad():
+                c_actor = self.method.actor_context(b, c)
+            metrics.update(self._actor_step(z, c, c_actor))
             t = self._tick('actor_alpha', t)
         if n % cfg.critic_target_update_freq == 0:
             soft_update_all(self, cfg)

@@ -1,7 +1,12 @@
 """Typed training configuration, with the paper's and a 2-core CPU profile per family.
 
-Every field carries a help string (`field(metadata={'help': ...})`); `describe()`
-prints them. `make_config(family, profile)` returns the preset:
+Every field carries a help string (`setting(default, help)`); the training
+command line is generated from them (`zeus_ros.learning_tools.train`) and `describe()` prints
+them. Settings only one method reads live in that method's module (its
+`MethodSettings` subclass, e.g. `cadm`'s `backward_weight`) and reach the
+config as `ZeusConfig.method_settings`; on disk the config is one flat dict
+(`to_dict` / `from_dict`), the format every shipped checkpoint holds.
+`make_config(family, profile)` returns the preset:
 
 * `paper`: Tables 8-9 and 11 of the appendix (actor/critic hidden 1024, batch
   128 per task, dynamics hidden 512, context length 5, init temperature 0.1,
@@ -14,17 +19,23 @@ prints them. `make_config(family, profile)` returns the preset:
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, MISSING
+import difflib
 import json
 
 from zeus_ros.core.methods import METHODS
+from zeus_ros.core.methods.base import MethodSettings
+from zeus_ros.core.settings import field_types, setting
 
 PROFILES = ('cpu', 'paper')
 AGGREGATIONS = ('mean', 'sum', 'max')
+TRAIN_SAMPLINGS = ('values', 'range', 'log-range')
+SWAP_DIRECTIONS = ('any', 'down')
+# The config fields the run's own options set (--family, --method, --profile).
+RUN_KEYS = ('family', 'method', 'profile')
 
 
-def _f(default, help_text):
-    return field(default=default, metadata={'help': help_text})
+_f = setting
 
 
 @dataclass(frozen=True)
@@ -34,34 +45,15 @@ class ZeusConfig:
     family: str = _f('walker-walk-v0', 'Environment family (sim_node.families).')
     method: str = _f('zeus', 'Context method (zeus_ros.core.methods): zeus, '
                      'zeus-no-context-loss, zeus-id, zeus-osi, sac, oracle, cadm, up-osi, '
-                     'hyperdynamics.')
+                     'hyperdynamics, rma.')
     profile: str = _f('cpu', "Preset the values came from: 'cpu' or 'paper'.")
     # -- context -------------------------------------------------------
     context_length: int = _f(5, 'k: transitions in the context window (Tables 8-9).')
-    aggregation: str = _f('mean', 'Permutation-invariant aggregation of psi: mean, sum or max.')
+    aggregation: str = _f('mean', 'Permutation-invariant aggregation of psi: mean, sum or max.',
+                          choices=AGGREGATIONS)
     context_dim: int = _f(50, 'Size of the latent context psi(H).')
     context_hidden: int = _f(256, 'Hidden width of the per-transition MLP of psi.')
     context_layers: int = _f(2, 'Hidden layers of the per-transition MLP of psi.')
-    context_input: str = _f(
-        'transition', "What psi reads per row (zeus-id): 'transition' = concat(s, a, r, s'), "
-        "'delta' = concat(s, a, r, s' - s); both standardised by running statistics.")
-    context_encoder: str = _f(
-        'deepset', "psi of the learned-encoder methods (zeus-id, cadm, up-osi, hyperdynamics): "
-        "'deepset' = pooled per-row codes; 'relational' = each row also reads its deviation "
-        'from the window mean (codes can depend on how transitions co-vary).')
-    context_critic_grad: bool = _f(
-        True, 'zeus-id: let the critic TD loss train psi (zeus always does).')
-    metric_normalise: bool = _f(
-        False, 'zeus-id: divide the task metric and latent distances by their batch means.')
-    id_weight: float = _f(
-        0.0, 'Weight of the parameter-regression loss THROUGH psi (privileged supervision in '
-        'training, as UP-OSI; 0 = the decoder reads a detached latent, a pure probe).')
-    backward_weight: float = _f(0.5, 'cadm: weight beta of the backward dynamics loss (Table 10).')
-    osi_warmup_updates: int = _f(
-        800, 'up-osi: updates that collect with the true parameter before OSI acts '
-        '(the paper: 3-5 of 500 iterations; 4/500 of 100k updates).')
-    hyper_model_hidden: int = _f(
-        64, 'hyperdynamics: hidden width of the generated dynamics model.')
     # -- observation encoder -------------------------------------------
     feature_dim: int = _f(50, 'Size of the latent state phi(s).')
     encoder_hidden: int = _f(256, 'Hidden width of the observation encoder phi.')
@@ -86,8 +78,6 @@ class ZeusConfig:
     alpha_psi: float = _f(1.0, 'Weight of the context loss (Table 11); 0 = no-context-loss.')
     dynamics_hidden: int = _f(512, 'Hidden width of T and R (Tables 8-9).')
     dynamics_layers: int = _f(1, 'Hidden layers of T and R (Tables 8-9).')
-    dynamics_loss: str = _f(
-        'nll', "'nll': Gaussian NLL (trains mean and log-std); 'mse': mean only.")
     model_lr: float = _f(3e-4, 'Learning rate of psi, T and R in the context/model update.')
     decoder_hidden: int = _f(64, 'Hidden width of the parameter decoder (reads detached psi).')
     decoder_lr: float = _f(1e-3, 'Learning rate of the parameter decoder.')
@@ -100,60 +90,189 @@ class ZeusConfig:
         0.0, 'Per timestep and training task, the probability that its parameter jumps to '
         'another training value mid-episode, window kept (a live swap in training: windows '
         'that straddle a change, e.g. a target below the running speed). 0 = the paper.')
+    train_sampling: str = _f(
+        'values', "Which parameter values training visits: 'values' = the family's train "
+        "values, one task each (the paper); 'range' = every episode start and every "
+        "training swap draws uniformly from [min, max] of the train values, per parameter; "
+        "'log-range' = log-uniformly (RMA's wide friction). Tasks keep their slots.",
+        choices=TRAIN_SAMPLINGS)
     train_swap_direction: str = _f(
         'any', "Where a training swap goes: 'any' other training value, or 'down' to a "
         "lower one only (none from the lowest): for target velocity, a target below the "
-        "speed the robot is running at, the windows where |v - target| reads v - target.")
+        "speed the robot is running at, the windows where |v - target| reads v - target.",
+        choices=SWAP_DIRECTIONS)
     reward_in_observation: bool = _f(
         False, 'Append the reward of the transition into each state to the observation '
         '(appendix B.2.1, for reward-varying families: preset there).')
     num_threads: int = _f(2, 'torch intra-op threads for training.')
+    # The method's own settings (its module's `MethodSettings` subclass); None = its defaults.
+    method_settings: MethodSettings | None = field(default=None, compare=True)
+
+    def __post_init__(self):
+        if self.method_settings is None and self.method in METHODS:
+            object.__setattr__(self, 'method_settings', METHODS[self.method].settings_class())
 
     def validate(self) -> 'ZeusConfig':
         """Raise ValueError on an inconsistent configuration; return self."""
         if self.method not in METHODS:
             raise ValueError(f'method must be one of {sorted(METHODS)}, got {self.method!r}')
-        if self.context_input not in ('transition', 'delta'):
-            raise ValueError("context_input must be 'transition' or 'delta'")
-        if self.context_encoder not in ('deepset', 'relational'):
-            raise ValueError("context_encoder must be 'deepset' or 'relational'")
-        if self.profile not in PROFILES:
-            raise ValueError(f'profile must be one of {PROFILES}, got {self.profile!r}')
-        if self.aggregation not in AGGREGATIONS:
-            raise ValueError(f'aggregation must be one of {AGGREGATIONS}')
-        if self.dynamics_loss not in ('nll', 'mse'):
-            raise ValueError("dynamics_loss must be 'nll' or 'mse'")
+        wanted = METHODS[self.method].settings_class
+        if type(self.method_settings) is not wanted:
+            raise ValueError(f'method_settings must be {wanted.__name__} for method '
+                             f'{self.method!r}, got {type(self.method_settings).__name__}')
+        self.method_settings.validate()
+        for name, allowed in (('profile', PROFILES), ('aggregation', AGGREGATIONS),
+                              ('train_sampling', TRAIN_SAMPLINGS),
+                              ('train_swap_direction', SWAP_DIRECTIONS)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f'{name} must be one of {allowed}, got {getattr(self, name)!r}')
         if self.context_length < 1:
             raise ValueError('context_length must be >= 1')
         if self.alpha_psi < 0:
             raise ValueError('alpha_psi must be >= 0')
-        if self.id_weight < 0:
-            raise ValueError('id_weight must be >= 0')
         if not 0.0 <= self.train_swap_prob <= 1.0:
             raise ValueError('train_swap_prob must be in [0, 1]')
-        if self.train_swap_direction not in ('any', 'down'):
-            raise ValueError("train_swap_direction must be 'any' or 'down'")
         if self.method == 'zeus-no-context-loss' and self.alpha_psi != 0:
             raise ValueError('zeus-no-context-loss is the alpha_psi = 0 ablation; '
                              f'got alpha_psi {self.alpha_psi}')
         return self
 
     def to_dict(self) -> dict:
-        """Plain dict of every field (JSON-serialisable)."""
-        return asdict(self)
+        """Return the flat dict of every shared field and the method's own settings (JSON)."""
+        shared = {name: getattr(self, name) for name in SHARED_KEYS}
+        return {**shared, **asdict(self.method_settings)}
+
+    @classmethod
+    def of(cls, **flat) -> 'ZeusConfig':
+        """Build from flat keys: shared fields and the method's own settings (validated).
+
+        A key no dataclass declares, or one of another method's settings, is a
+        ValueError that says so.
+        """
+        method = flat.get('method', _DEFAULTS['method'])
+        if method not in METHODS:
+            raise ValueError(f'method must be one of {sorted(METHODS)}, got {method!r}')
+        refuse_foreign_keys(method, flat)
+        own = settings_fields(method)
+        settings = METHODS[method].settings_class(**{k: flat[k] for k in own if k in flat})
+        return cls(**{k: v for k, v in flat.items() if k not in own},
+                   method_settings=settings).validate()
 
     @classmethod
     def from_dict(cls, data: dict) -> 'ZeusConfig':
-        """Build from `to_dict()` output; unknown keys are an error."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
+        """Build from a checkpoint's flat config; unknown keys are an error.
+
+        Checkpoints written while every method's settings sat in one shared
+        config hold all of them: another method's keys are checked (each must
+        be a valid value of its field) and left out, since this method never
+        read them.
+        """
+        method = data.get('method', _DEFAULTS['method'])
+        if method not in METHODS:
+            raise ValueError(f'method must be one of {sorted(METHODS)}, got {method!r}')
+        mine = set(SHARED_KEYS) | set(settings_fields(method))
+        foreign = {k: v for k, v in data.items() if k not in mine}
+        unknown = set(foreign) - set(setting_owners())
         if unknown:
             raise ValueError(f'unknown config keys: {sorted(unknown)}')
-        return cls(**data).validate()
+        _check_foreign_settings(foreign)
+        return cls.of(**{k: v for k, v in data.items() if k in mine})
 
     def replace(self, **changes) -> 'ZeusConfig':
-        """Copy with some fields changed (validated)."""
-        return replace(self, **changes).validate()
+        """Copy with flat keys changed (validated); a new method starts on its own settings."""
+        flat = self.to_dict()
+        if changes.get('method', self.method) != self.method:
+            flat = {k: v for k, v in flat.items() if k in SHARED_KEYS}
+        return ZeusConfig.of(**{**flat, **changes})
+
+
+SHARED_KEYS = tuple(f.name for f in fields(ZeusConfig) if f.name != 'method_settings')
+_DEFAULTS = {f.name: f.default for f in fields(ZeusConfig) if f.default is not MISSING}
+
+
+def settings_classes() -> dict[type[MethodSettings], tuple[str, ...]]:
+    """Return every registered method's settings class and the methods that use it."""
+    out: dict[type[MethodSettings], tuple[str, ...]] = {}
+    for name, method in METHODS.items():
+        out[method.settings_class] = (*out.get(method.settings_class, ()), name)
+    return out
+
+
+def settings_fields(method: str) -> tuple[str, ...]:
+    """Return the flat keys of `method`'s own settings."""
+    return tuple(f.name for f in fields(METHODS[method].settings_class))
+
+
+def setting_owners() -> dict[str, tuple[str, ...]]:
+    """Return each method-settings key and the methods that read it."""
+    owners: dict[str, tuple[str, ...]] = {}
+    for name in METHODS:
+        for key in settings_fields(name):
+            owners[key] = (*owners.get(key, ()), name)
+    return owners
+
+
+def config_types() -> dict[str, type]:
+    """Return the value type of every flat config key any method has (shared and settings)."""
+    kinds = {k: v for k, v in field_types(ZeusConfig).items() if k in SHARED_KEYS}
+    for cls in settings_classes():
+        kinds.update(field_types(cls))
+    return kinds
+
+
+def settings_groups() -> dict[type[MethodSettings], tuple[str, ...]]:
+    """Return each class that declares method settings and the methods that read its fields."""
+    groups: dict[type[MethodSettings], tuple[str, ...]] = {}
+    for name, method in METHODS.items():
+        for cls in method.settings_class.__mro__:
+            if issubclass(cls, MethodSettings) and cls.__dict__.get('__annotations__'):
+                groups[cls] = (*groups.get(cls, ()), name)
+    return groups
+
+
+def unknown_key_message(key: str) -> str:
+    """Say that `key` is no config field, with the closest field's name if one is close."""
+    close = difflib.get_close_matches(key, list(config_types()), 1)
+    return f'unknown config field {key!r}' + (f' (did you mean {close[0]!r}?)' if close else '')
+
+
+def refuse_foreign_keys(method: str, keys) -> None:
+    """Raise ValueError naming the first key that is neither shared nor `method`'s own."""
+    mine = set(SHARED_KEYS) | set(settings_fields(method))
+    for key in keys:
+        if key in mine:
+            continue
+        owners = setting_owners().get(key)
+        if owners:
+            raise ValueError(f'{key} is a setting of method {" / ".join(owners)}; method '
+                             f'{method!r} does not read it')
+        raise ValueError(unknown_key_message(key))
+
+
+def _check_foreign_settings(foreign: dict) -> None:
+    """Validate other methods' keys with their own settings classes (ValueError if bad)."""
+    for cls in settings_classes():
+        names = {f.name for f in fields(cls)}
+        if names & set(foreign):
+            cls(**{k: v for k, v in foreign.items() if k in names}).validate()
+
+
+PROFILE_PRESETS: dict[str, dict] = {
+    'paper': dict(hidden_dim=1024, batch_size_per_task=128, dynamics_hidden=512,
+                  replay_capacity=400_000, context_dim=50, feature_dim=50,
+                  encoder_hidden=256, context_hidden=256, num_threads=2),
+    'cpu': dict(hidden_dim=256, batch_size_per_task=32, dynamics_hidden=256,
+                replay_capacity=400_000, context_dim=16, feature_dim=50,
+                encoder_hidden=256, context_hidden=128, num_threads=2),
+}
+# Fields a family's facts preset (make_config's arguments; episode_steps: the trainer's).
+FAMILY_PRESETS = {
+    'alpha_psi': "the family's Table 11 value",
+    'init_steps': '10000 for a reward-varying family',
+    'adam_beta1': '0.5 for a reward-varying family',
+    'reward_in_observation': 'true for a reward-varying family',
+    'episode_steps': "a family's own horizon (Sawyer-Peg: 40)",
+}
 
 
 def make_config(family: str, profile: str = 'cpu', method: str = 'zeus', *,
@@ -164,33 +283,41 @@ def make_config(family: str, profile: str = 'cpu', method: str = 'zeus', *,
     The family's facts arrive as arguments (the learning core does not read
     the simulation's tables): `family_alpha_psi` is its Table 11 value, and a
     reward-varying family takes Table 9's exploration and Adam betas and the
-    reward in the observation (appendix B.2.1). Then
-    the method's presets apply, then `overrides` (the user's), which win.
+    reward in the observation (appendix B.2.1). Then the profile's and the
+    method's presets apply, then `overrides` (the user's), which win; any of
+    them may name the method's own settings.
     """
+    if profile not in PROFILE_PRESETS:
+        raise ValueError(f'profile must be one of {PROFILES}, got {profile!r}')
     base = dict(
         family=family, profile=profile, alpha_psi=family_alpha_psi,
         init_steps=10_000 if reward_varying else 1500,
-        adam_beta1=0.5 if reward_varying else 0.9, reward_in_observation=reward_varying)
-    if profile == 'paper':
-        base.update(hidden_dim=1024, batch_size_per_task=128, dynamics_hidden=512,
-                    replay_capacity=400_000, context_dim=50, feature_dim=50,
-                    encoder_hidden=256, context_hidden=256, num_threads=2)
-    elif profile == 'cpu':
-        base.update(hidden_dim=256, batch_size_per_task=32, dynamics_hidden=256,
-                    replay_capacity=400_000, context_dim=16, feature_dim=50,
-                    encoder_hidden=256, context_hidden=128, num_threads=2)
-    else:
-        raise ValueError(f'profile must be one of {PROFILES}, got {profile!r}')
+        adam_beta1=0.5 if reward_varying else 0.9, reward_in_observation=reward_varying,
+        **PROFILE_PRESETS[profile])
     base['method'] = method
     base.update(METHODS[method].config_defaults if method in METHODS else {})
     base.update(overrides)
-    return ZeusConfig(**base).validate()
+    return ZeusConfig.of(**base)
+
+
+def preset_note(name: str) -> str:
+    """Say which presets change field `name` (for its --help line), or ''."""
+    parts = [f'{p} {v[name]!r}' for p, v in PROFILE_PRESETS.items() if name in v]
+    parts += [f'{m} {cls.config_defaults[name]!r}' for m, cls in METHODS.items()
+              if name in cls.config_defaults]
+    if name in FAMILY_PRESETS:
+        parts.append(FAMILY_PRESETS[name])
+    return f'[presets: {"; ".join(parts)}]' if parts else ''
 
 
 def describe() -> str:
-    """One line per field: name, default and help."""
-    return '\n'.join(f'{f.name} (default {f.default!r}): {f.metadata["help"]}'
-                     for f in fields(ZeusConfig))
+    """One line per flat config key: name, default and help (shared, then the methods')."""
+    owners = setting_owners()
+    own = {f.name: f for cls in settings_classes() for f in fields(cls)}
+    lines = [(f, '') for f in fields(ZeusConfig) if f.name in SHARED_KEYS]
+    lines += [(f, f' [{" / ".join(owners[name])}]') for name, f in own.items()]
+    return '\n'.join(f'{f.name}{owner} (default {f.default!r}): {f.metadata["help"]}'
+                     for f, owner in lines)
 
 
 def config_json(config: ZeusConfig) -> str:

@@ -120,7 +120,8 @@ class GaussianModel(nn.Module):
         super().__init__()
         self.net = mlp(feature_dim + action_dim + context_dim, hidden, 2 * feature_dim, layers)
 
-    def forward(self, z: torch.Tensor, a: torch.Tensor, c: torch.Tensor):
+    def forward(self, z: torch.Tensor, a: torch.Tensor,
+                c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mu, log_std = run_mlp(self.net, torch.cat([z, a, c], dim=-1)).chunk(2, dim=-1)
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (
             torch.tanh(log_std) + 1.0)
@@ -149,7 +150,7 @@ class Actor(nn.Module):
         self.log_std_min = log_std_min
         self.log_std_max = log_std_max
 
-    def forward(self, x: torch.Tensor):
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mu, log_std = run_mlp(self.net, x).chunk(2, dim=-1)
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (
             torch.tanh(log_std) + 1.0)
@@ -160,7 +161,7 @@ class Actor(nn.Module):
         mu, _ = self(x)
         return torch.tanh(mu)
 
-    def sample(self, x: torch.Tensor):
+    def sample(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Reparameterised sample: (action, log_prob[B], tanh(mu))."""
         mu, log_std = self(x)
         std = log_std.exp()
@@ -181,7 +182,7 @@ class Critic(nn.Module):
         self.q1 = mlp(in_dim + action_dim, hidden, 1, layers)
         self.q2 = mlp(in_dim + action_dim, hidden, 1, layers)
 
-    def forward(self, x: torch.Tensor, a: torch.Tensor):
+    def forward(self, x: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         xa = torch.cat([x, a], dim=-1)
         return self.q1(xa).squeeze(-1), self.q2(xa).squeeze(-1)
 

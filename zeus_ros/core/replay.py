@@ -49,7 +49,8 @@ class Batch:
     chain_mask: torch.Tensor    # [B, k + 1]: which of them exist
 
 
-def oldest_first(rows_newest_first: np.ndarray, valid: np.ndarray):
+def oldest_first(rows_newest_first: np.ndarray,
+                 valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Reorder [B, k, D] rows given newest first (valid rows a prefix) to window layout."""
     b, k = valid.shape
     count = valid.sum(axis=1)
@@ -127,7 +128,8 @@ class ReplayBuffer:
         rows[slots < 0] = 0.0
         return rows
 
-    def windows(self, idx: np.ndarray):
+    def windows(self, idx: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray],
+                                                tuple[np.ndarray, np.ndarray]]:
         """((ctx_rows, ctx_mask), (next_ctx_rows, next_ctx_mask)) of slots `idx`."""
         return self._windows_and_chain(idx)[:2]
 

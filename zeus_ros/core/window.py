@@ -1,7 +1,7 @@
 """The context window: THE single definition of the history H that psi encodes.
 
 Used by the trainer (to build the replay buffer's histories and to act), by
-`zeus_ros.evaluate.run_episode` and by the ROS context node, so all three feed
+`zeus_ros.learning_tools.evaluate.run_episode` and by the ROS context node, so all three feed
 psi exactly the same array for the same trajectory.
 
 Definition

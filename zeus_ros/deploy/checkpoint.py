@@ -15,7 +15,9 @@ A checkpoint is a directory:
 * ``metadata.json``: format version, family and parameter, observation layout
   (joint names and position encodings), action layout (actuator names), k,
   row width, aggregation, parameter normalisation, the full config, step
-  counters, git commit, and the size and SHA-256 of both safetensors files.
+  counters, git commit, and the size and SHA-256 of both safetensors files:
+  a `CheckpointMetadata` (zeus_ros.deploy.metadata, the schema) written by
+  `write_metadata` and read by `load_metadata`, the only two that touch the file.
 
 Every load checks the metadata, the file sizes and SHA-256 sums, the tensor
 names and shapes against networks rebuilt from the stored config, and,
@@ -32,6 +34,7 @@ from pathlib import Path
 import shutil
 import subprocess
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 from safetensors import SafetensorError
@@ -39,9 +42,14 @@ from safetensors.torch import load_file, save_file
 import torch
 
 from zeus_ros.core.config import ZeusConfig
-from zeus_ros.deploy.metadata import CheckpointMetadata, MetadataError
+from zeus_ros.deploy.metadata import (ActionLayoutMeta, CheckpointMetadata, CONFIG_LIMITS,
+                                      ContextMeta, FileMeta, FORMAT_VERSION, LAYERS,
+                                      MetadataError, ObsLayoutMeta, ParamNormMeta, parse_section,
+                                      RunMeta, StepsMeta, WIDTH)
 
-FORMAT_VERSION = 1
+if TYPE_CHECKING:
+    from zeus_ros.core.methods import ContextMethod
+
 MODEL_FILE = 'model.safetensors'
 STATE_FILE = 'training_state.safetensors'
 METADATA_FILE = 'metadata.json'
@@ -51,6 +59,10 @@ RESUME_FREE_KEYS = frozenset({'num_threads'})
 
 class CheckpointError(Exception):
     """A checkpoint is missing, corrupt, truncated or does not match what is expected."""
+
+
+class MetadataRefused(CheckpointError, MetadataError):
+    """metadata.json breaks its schema or does not fit the tensors; the message names the field."""
 
 
 def sha256_file(path: Path) -> str:
@@ -128,45 +140,38 @@ def _load_optimizer(name: str, opt: torch.optim.Optimizer, tensors: dict) -> Non
 
 
 def build_metadata(agent, env_info: dict, counters: dict, run: dict | None = None,
-                   wall_s: float | None = None) -> dict:
-    """Metadata dict (without file hashes) for an agent and its environment.
+                   wall_s: float | None = None) -> CheckpointMetadata:
+    """Metadata (without the files' hashes) of an agent and its environment.
 
-    `run`: the training run's arguments (seed included); `wall_s`: its training
-    wall time so far, across resumes.
+    `env_info`: the environment's layout (zeus_ros.learning_tools.train.env_info); `run`:
+    the training run's arguments (seed included), as JSON; `wall_s`: its
+    training wall time so far, across resumes.
     """
     cfg: ZeusConfig = agent.config
-    return {
-        'format_version': FORMAT_VERSION,
-        'family': cfg.family,
-        **_parameter_names(env_info),
-        'obs_layout': {'obs_dim': agent.obs_dim,
-                       'joint_names': list(env_info['joint_names']),
-                       'position_encoding': list(env_info['position_encoding']),
-                       'reward_in_observation': bool(env_info.get('reward_in_observation',
-                                                                  False)),
-                       **_velocity_encoding(env_info)},
-        'action_layout': {'action_dim': agent.action_dim,
-                          'actuator_names': list(env_info['actuator_names']),
-                          'range': [-1.0, 1.0]},
-        'context': {'k': cfg.context_length, 'row_dim': agent.row_dim,
-                    'row_layout': 'concat(s, a, [r], s_next) float32',
-                    'aggregation': cfg.aggregation,
-                    'context_dim': agent.method.context_dim,
-                    'method': cfg.method,
-                    'needs_true_param': agent.method.needs_true_param,
-                    'empty_window': 'zero latent'},
-        'param_normalisation': {**_normalisation(agent.param),
-                                'formula': '(value - offset) / scale',
-                                'train_values': [v if isinstance(v, float | int) else list(v)
-                                                 for v in env_info['train_values']]},
-        'control_timestep': env_info.get('control_timestep'),
-        'config': cfg.to_dict(),
-        'steps': dict(counters, **({} if wall_s is None else {'wall_s': round(wall_s, 2)})),
-        'run': run,
-        'seed': None if run is None else run.get('seed'),
-        'git_commit': git_commit(),
-        'created_unix': time.time(),
-    }
+    names = tuple(env_info.get('param_names') or (env_info['param_name'],))
+    # The run's arguments are the tool's (RunArgs): read through the schema, not trusted.
+    run_meta = None if run is None else parse_section(RunMeta, run, 'run.')
+    return CheckpointMetadata(
+        format_version=FORMAT_VERSION, family=cfg.family,
+        # Always the joined names, as older readers expect; the list only for several.
+        param_name=', '.join(names), param_names=names if len(names) > 1 else (),
+        obs_layout=_obs_layout(agent.obs_dim, env_info),
+        action_layout=ActionLayoutMeta(agent.action_dim, tuple(env_info['actuator_names'])),
+        context=ContextMeta(k=cfg.context_length, row_dim=agent.row_dim,
+                            aggregation=cfg.aggregation, context_dim=agent.method.context_dim,
+                            method=cfg.method,
+                            needs_true_param=agent.method.needs_true_param),
+        param_normalisation=_normalisation(agent.param, env_info['train_values']),
+        control_timestep=env_info.get('control_timestep'),
+        config=cfg.to_dict(),
+        steps=StepsMeta(**counters, wall_s=None if wall_s is None else round(wall_s, 2)),
+        files={}, run=run_meta, seed=None if run_meta is None else run_meta.seed,
+        git_commit=git_commit(), created_unix=time.time())
+
+
+def write_metadata(directory: Path, meta: CheckpointMetadata) -> None:
+    """Write `meta` as the metadata.json of a checkpoint (or export) directory."""
+    (Path(directory) / METADATA_FILE).write_text(meta.to_json())
 
 
 def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dict | None = None,
@@ -199,10 +204,9 @@ def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dic
             state[key] = torch.from_numpy(arr)
     save_file(state, str(tmp / STATE_FILE))
     meta = build_metadata(agent, env_info, counters, run, wall_s)
-    meta['files'] = {f: {'sha256': sha256_file(tmp / f), 'bytes': (tmp / f).stat().st_size}
-                     for f in (MODEL_FILE, STATE_FILE)}
-    meta['replay_saved'] = replay is not None
-    (tmp / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True))
+    write_metadata(tmp, meta.with_files(
+        {f: FileMeta(sha256_file(tmp / f), (tmp / f).stat().st_size)
+         for f in (MODEL_FILE, STATE_FILE)}, replay_saved=replay is not None))
     old = path.parent / f'.{path.name}.old-{os.getpid()}'
     if path.exists():
         path.rename(old)
@@ -212,72 +216,64 @@ def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dic
 
 
 def load_metadata(path, expected_family: str | None = None, obs_dim: int | None = None,
-                  action_dim: int | None = None) -> dict:
+                  action_dim: int | None = None) -> CheckpointMetadata:
     """Read and check metadata.json; raise CheckpointError on any problem."""
     path = resolve_dir(path)
     try:
-        meta = json.loads((path / METADATA_FILE).read_text())
+        raw = json.loads((path / METADATA_FILE).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise CheckpointError(f'{path / METADATA_FILE} is unreadable or not valid JSON: '
                               f'{error}') from None
-    if not isinstance(meta, dict):
+    if not isinstance(raw, dict):
         raise CheckpointError(f'{path / METADATA_FILE} does not hold a JSON object')
     try:
-        typed = CheckpointMetadata.parse(meta)
-        typed.zeus_config()
+        meta = CheckpointMetadata.parse(raw)
     except MetadataError as error:
-        raise CheckpointError(f'{path / METADATA_FILE}: {error}') from None
-    if typed.format_version != FORMAT_VERSION:
-        raise CheckpointError(f'checkpoint format {typed.format_version}, '
-                              f'this code reads {FORMAT_VERSION}')
-    if expected_family is not None and typed.family != expected_family:
-        raise CheckpointError(f'checkpoint is for family {typed.family!r}, '
+        raise MetadataRefused(f'{path / METADATA_FILE}: {error}') from None
+    if expected_family is not None and meta.family != expected_family:
+        raise CheckpointError(f'checkpoint is for family {meta.family!r}, '
                               f'expected {expected_family!r}')
-    if typed.config.get('family') != typed.family:
-        raise CheckpointError('metadata family and config family disagree')
-    for label, want, have in (('observation size', obs_dim, typed.obs_layout.obs_dim),
-                              ('action size', action_dim, typed.action_layout.action_dim)):
+    for label, want, have in (('observation size', obs_dim, meta.obs_layout.obs_dim),
+                              ('action size', action_dim, meta.action_layout.action_dim)):
         if want is not None and int(want) != int(have):
             raise CheckpointError(f'{label} mismatch: checkpoint has {have}, expected {want}')
     return meta
 
 
-def _parameter_names(env_info: dict) -> dict:
-    """param_name (always, as older readers expect) and, for several, param_names."""
-    names = tuple(env_info.get('param_names') or (env_info['param_name'],))
-    if len(names) == 1:
-        return {'param_name': names[0]}
-    return {'param_name': ', '.join(names), 'param_names': list(names)}
+def _obs_layout(obs_dim: int, env_info: dict) -> ObsLayoutMeta:
+    """Return the observation section of an environment's layout."""
+    velocities = env_info.get('velocity_encoding')
+    return ObsLayoutMeta(obs_dim, tuple(env_info['joint_names']),
+                         tuple(env_info['position_encoding']),
+                         bool(env_info.get('reward_in_observation', False)),
+                         None if velocities is None else tuple(velocities))
 
 
-def _normalisation(param) -> dict:
-    """Return offset and scale as metadata.json holds them: numbers for one parameter, lists."""
+def _normalisation(param, train_values) -> ParamNormMeta:
+    """Return the normalisation: offset and scale numbers for one parameter, else lists."""
+    values = tuple(v if isinstance(v, float | int) else tuple(v) for v in train_values)
     if param.param_dim == 1:
-        return {'offset': param.offset[0], 'scale': param.scale[0]}
-    return {'offset': list(param.offset), 'scale': list(param.scale)}
+        return ParamNormMeta(param.offset[0], param.scale[0], values)
+    return ParamNormMeta(tuple(param.offset), tuple(param.scale), values)
 
 
-def _velocity_encoding(env_info: dict) -> dict:
-    """Return the layout's velocity encoding, written only when some velocity is dropped."""
-    encoding = env_info.get('velocity_encoding')
-    return {} if encoding is None else {'velocity_encoding': list(encoding)}
-
-
-def _verified_tensors(path: Path, meta: dict, name: str) -> dict:
+def _verified_tensors(path: Path, meta: CheckpointMetadata, name: str) -> dict:
     file = path / name
-    info = meta['files'].get(name)
+    info = meta.files.get(name)
     if info is None:
-        raise CheckpointError(f'metadata lists no {name}')
+        raise MetadataRefused(f'{path / METADATA_FILE}: files.{name}: missing')
     if not file.exists():
         raise CheckpointError(f'{file} is missing')
     size = file.stat().st_size
-    if size != info['bytes']:
-        raise CheckpointError(f'{file} is {size} bytes, metadata says {info["bytes"]} '
-                              f'(truncated or replaced)')
+    # Which of the two is wrong cannot be told: the message names both.
+    if size != info.bytes:
+        raise MetadataRefused(f'{file} is {size} bytes, metadata says {info.bytes} '
+                              f'(files.{name}.bytes; truncated or replaced)')
     digest = sha256_file(file)
-    if digest != info['sha256']:
-        raise CheckpointError(f'{file} SHA-256 {digest[:12]}... does not match metadata '
-                              f'{info["sha256"][:12]}... (corrupt or replaced)')
+    if digest != info.sha256:
+        raise MetadataRefused(f'{file} SHA-256 {digest[:12]}... does not match metadata '
+                              f'{info.sha256[:12]}... (files.{name}.sha256; corrupt or '
+                              'replaced)')
     try:
         return load_file(str(file))
     except (SafetensorError, OSError, ValueError) as error:
@@ -310,38 +306,103 @@ def _refuse_non_finite(tensors: dict, source: str) -> None:
 
 
 def load_model(path, expected_family: str | None = None, obs_dim: int | None = None,
-               action_dim: int | None = None):
-    """Load (metadata, method, inference modules dict) after every check."""
-    from zeus_ros.core.agent import build_method, build_policy_modules
-    from zeus_ros.core.methods import ParamScale
+               action_dim: int | None = None,
+               ) -> tuple[CheckpointMetadata, ContextMethod, dict[str, torch.nn.Module]]:
+    """Load (metadata, method, inference modules dict) after every check.
+
+    The networks are built for real only once a skeleton of them (on torch's
+    'meta' device: shapes, no memory) has been found to fit the tensors.
+    """
     path = resolve_dir(path)
     meta = load_metadata(path, expected_family, obs_dim, action_dim)
-    cfg = ZeusConfig.from_dict(meta['config'])
-    obs, act = meta['obs_layout']['obs_dim'], meta['action_layout']['action_dim']
-    norm = meta['param_normalisation']
-    method = build_method(cfg, obs, act, ParamScale(norm['offset'], norm['scale']),
-                          training=False)
-    modules = {**build_policy_modules(cfg, obs, method.context_dim, act),
-               **method.inference_modules()}
+    cfg = meta.zeus_config()
     tensors = _verified_tensors(path, meta, MODEL_FILE)
-    unknown = [k for k in tensors if k.split('.', 1)[0] not in modules]
-    if unknown:
-        raise CheckpointError(f'{MODEL_FILE} has unexpected tensors {unknown[:4]}')
     _refuse_non_finite(tensors, MODEL_FILE)
+    with torch.device('meta'):
+        skeleton = _policy_networks(meta, cfg)
+    problem = _misfit(meta, cfg, skeleton, tensors)
+    if problem is not None:
+        raise MetadataRefused(f'{path / METADATA_FILE}: {problem}')
+    method, modules = _policy_networks(meta, cfg)
     load_state_into(modules, tensors, MODEL_FILE)
     for m in modules.values():
         m.eval()
     return meta, method, modules
 
 
+def _policy_networks(meta: CheckpointMetadata, cfg: ZeusConfig) -> tuple:
+    """Build (method, inference modules) as the metadata and `cfg` describe them."""
+    from zeus_ros.core.agent import build_method, build_policy_modules
+    from zeus_ros.core.methods import ParamScale
+    obs, act = meta.obs_layout.obs_dim, meta.action_layout.action_dim
+    norm = meta.param_normalisation
+    method = build_method(cfg, obs, act, ParamScale(norm.offsets, norm.scales), training=False)
+    return method, {**build_policy_modules(cfg, obs, method.context_dim, act),
+                    **method.inference_modules()}
+
+
+def _shapes(modules: dict) -> dict:
+    return {f'{prefix}.{k}': tuple(v.shape)
+            for prefix, module in modules.items() for k, v in module.state_dict().items()}
+
+
+def _differing(a: dict, b: dict) -> set:
+    return {k for k in a.keys() | b.keys() if a.get(k) != b.get(k)}
+
+
+def _misfit(meta: CheckpointMetadata, cfg: ZeusConfig, skeleton: tuple,
+            tensors: dict) -> str | None:
+    """Return why the metadata does not describe the tensors (naming fields), or None."""
+    method, modules = skeleton
+    if meta.context.context_dim != method.context_dim:
+        return (f'context.context_dim: must be {method.context_dim} (method '
+                f'{cfg.method!r} with config.context_dim {cfg.context_dim}), '
+                f'got {meta.context.context_dim}')
+    unknown = [k for k in tensors if k.split('.', 1)[0] not in modules]
+    if unknown:
+        return f'{MODEL_FILE} has tensors {unknown[:4]} that method {cfg.method!r} does not have'
+    want = _shapes(modules)
+    have = {k: tuple(v.shape) for k, v in tensors.items()}
+    wrong = _differing(want, have)
+    if not wrong:
+        return None
+    example = sorted(wrong)[0]
+    return (f'{" or ".join(_suspects(meta, cfg, want, wrong))}: does not match {MODEL_FILE} '
+            f'({example} is {have.get(example, "absent")} there, '
+            f'{want.get(example, "absent")} by the metadata)')
+
+
+def _suspects(meta: CheckpointMetadata, cfg: ZeusConfig, want: dict, wrong: set) -> list[str]:
+    """Return the config sizes that shape the tensors that do not fit, likeliest first.
+
+    Each size is moved one up and one down in a skeleton: the tensors that
+    change are the ones it shapes. The likeliest culprit shapes exactly the
+    misfits (a layer count one off even makes them fit).
+    """
+    scores = {}
+    sizes = cfg.to_dict()   # the shared fields and this method's own settings
+    for name, limit in CONFIG_LIMITS.items():
+        if limit not in (WIDTH, LAYERS) or name not in sizes:
+            continue
+        for value in {max(sizes[name] - 1, limit.lo), sizes[name] + 1}:
+            with torch.device('meta'):
+                moved = _differing(want, _shapes(_policy_networks(
+                    meta, cfg.replace(**{name: value}))[1]))
+            if moved & wrong:
+                score = len(moved & wrong) / len(moved | wrong)
+                scores[f'config.{name}'] = max(score, scores.get(f'config.{name}', 0.0))
+    return sorted(scores, key=scores.get, reverse=True)[:3] or ['config']
+
+
 def load_training_checkpoint(path, agent, replay=None) -> dict:
     """Restore an agent (and replay buffer) for resuming; returns counters and RNG states."""
     path = resolve_dir(path)
     meta = load_metadata(path, agent.config.family, agent.obs_dim, agent.action_dim)
-    stored = ZeusConfig.from_dict(meta['config']).to_dict()
+    stored = meta.zeus_config().to_dict()
     now = agent.config.to_dict()
-    diff = {k: (v, now[k]) for k, v in stored.items()
-            if now[k] != v and k not in RESUME_FREE_KEYS}
+    # Keys of one side only: the two configs are of different methods (method differs too).
+    diff = {k: (stored.get(k), now.get(k)) for k in sorted(stored.keys() | now.keys())
+            if now.get(k) != stored.get(k) and k not in RESUME_FREE_KEYS}
     if diff:
         raise CheckpointError(f'config differs from the checkpoint (stored, now): {diff}')
     model = _verified_tensors(path, meta, MODEL_FILE)

@@ -1,4 +1,4 @@
-"""Deployment model: the exact functions the ROS nodes and `zeus_ros.evaluate` call.
+"""Deployment model: the exact functions the ROS nodes and `zeus_ros.learning_tools.evaluate` call.
 
     model = InferenceModel.load(path)           # checks the checkpoint (CheckpointError)
     latent = model.context(rows, mask)          # np.float32 [context_dim]
@@ -14,6 +14,12 @@ evaluation and the ROS nodes, which pass the latent between them as float32,
 compute bit-identical actions for the same observations and windows. (With two
 threads the same episode's actions differ in the last bits, so every call
 re-asserts one thread if something else in the process changed it.)
+
+`DeployedModel` is that interface over the checkpoint's metadata (`meta`,
+the typed tree of zeus_ros.deploy.metadata), with the checks of what goes
+in; `InferenceModel` runs it in torch, and
+`zeus_ros.deploy.onnx_model.OnnxInferenceModel` runs the same networks,
+exported, in ONNX Runtime. `zeus_ros.deploy.backends.load_deployed` picks one.
 """
 
 from __future__ import annotations
@@ -33,33 +39,113 @@ def _single_thread() -> None:
         torch.set_num_threads(1)
 
 
-class InferenceModel:
-    """phi, psi, actor and decoder of a checkpoint, with numpy in and out."""
+class DeployedModel:
+    """The deployed functions of a checkpoint, numpy in and out, whatever runs them.
 
-    def __init__(self, metadata: dict, method, modules: dict):
-        self.metadata = metadata
-        self.meta = CheckpointMetadata.parse(dict(metadata, files=metadata.get('files', {})))
-        self.method = method
-        self.phi = modules['phi']
-        self.actor = modules['actor']
+    Subclasses write `_context`, `_features`, `_act` and `_decode`, each given
+    checked float32 arrays with a batch axis of 1.
+    """
+
+    backend_note = 'torch'    # what runs the networks, for the nodes' start-up line
+
+    def __init__(self, meta: CheckpointMetadata, context_dim: int, needs_true_param: bool):
+        self.meta = meta
         self.family = self.meta.family
         self.method_name = self.meta.context.method
-        self.needs_true_param = method.needs_true_param
+        self.needs_true_param = needs_true_param
         self.obs_dim = self.meta.obs_layout.obs_dim
         # The observation ends with the reward into the state (ParamEnv reward_in_obs).
         self.reward_in_observation = self.meta.obs_layout.reward_in_observation
         self.action_dim = self.meta.action_layout.action_dim
         self.k = self.meta.context.k
         self.row_dim = self.meta.context.row_dim
-        self.context_dim = method.context_dim
+        self.context_dim = context_dim
         self.param_names = self.meta.names
         self.param_offset = np.asarray(self.meta.param_normalisation.offsets)
         self.param_scale = np.asarray(self.meta.param_normalisation.scales)
 
+    def context(self, rows: np.ndarray, mask: np.ndarray,
+                true_param=None) -> np.ndarray:
+        """Latent context of one window (rows [k, row_dim], mask [k]) as float32.
+
+        `true_param` (a number, or one per parameter) is read only by privileged
+        methods (`needs_true_param`).
+        """
+        rows = np.asarray(rows, dtype=np.float32)
+        mask = np.asarray(mask, dtype=bool)
+        if rows.shape != (self.k, self.row_dim) or mask.shape != (self.k,):
+            raise ValueError(f'window must be rows {(self.k, self.row_dim)} and mask '
+                             f'({self.k},), got {rows.shape} and {mask.shape}')
+        param = None if true_param is None else \
+            np.asarray(true_param, dtype=np.float32).reshape(1, -1)
+        return self._context(rows[None], mask[None], param)[0].astype(np.float32)
+
+    def act(self, obs: np.ndarray, latent: np.ndarray) -> np.ndarray:
+        """Deterministic action tanh(mu) in [-1, 1] as float64."""
+        return self.act_on_features(self.features(obs), latent)
+
+    def features(self, obs: np.ndarray) -> np.ndarray:
+        """phi(s) as float32: the half of `act` that needs no context.
+
+        The policy node computes it when a state arrives, while the context
+        node is still computing that state's latent.
+        """
+        obs = np.asarray(obs, dtype=np.float32).reshape(-1)
+        if obs.shape != (self.obs_dim,):
+            raise ValueError(f'obs must have {self.obs_dim} values, got {obs.size}')
+        return self._features(obs[None])[0]
+
+    def act_on_features(self, features: np.ndarray, latent: np.ndarray) -> np.ndarray:
+        """Deterministic action tanh(mu) from phi(s) (`features`) and the latent, as float64."""
+        latent = np.asarray(latent, dtype=np.float32).reshape(-1)
+        if latent.shape != (self.context_dim,):
+            raise ValueError(f'latent must have {self.context_dim} values, got {latent.size}')
+        features = np.asarray(features, dtype=np.float32).reshape(1, -1)
+        return self._act(features, latent[None])[0].astype(np.float64)
+
+    def decode_values(self, latent: np.ndarray) -> np.ndarray:
+        """Physical-parameter estimates read from a latent, one per name (NaN: no decoder)."""
+        normalised = self._decode(np.asarray(latent, dtype=np.float32).reshape(1, -1))
+        if normalised is None:
+            return np.full(len(self.param_names), math.nan)
+        return normalised[0].astype(np.float64) * self.param_scale + self.param_offset
+
+    def decode(self, latent: np.ndarray) -> float:
+        """Return the estimate of a one-parameter family's parameter (NaN without a decoder)."""
+        if len(self.param_names) != 1:
+            raise ValueError(f'{self.family} has {len(self.param_names)} parameters: '
+                             'use decode_values')
+        return float(self.decode_values(latent)[0])
+
+    # -- what a backend writes (arrays [1, ...], float32 in and out) -------------------
+    def _context(self, rows: np.ndarray, mask: np.ndarray,
+                 param: np.ndarray | None) -> np.ndarray:
+        raise NotImplementedError
+
+    def _features(self, obs: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _act(self, features: np.ndarray, latent: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _decode(self, latent: np.ndarray) -> np.ndarray | None:
+        raise NotImplementedError
+
+
+class InferenceModel(DeployedModel):
+    """phi, psi, actor and decoder of a checkpoint, run in torch."""
+
+    def __init__(self, meta: CheckpointMetadata, method, modules: dict):
+        super().__init__(meta, method.context_dim, method.needs_true_param)
+        self.method = method
+        self.phi = modules['phi']
+        self.actor = modules['actor']
+
     @classmethod
     def from_agent(cls, agent, env_info: dict) -> 'InferenceModel':
         """Wrap an agent in memory in the deployed functions (the trainer's evaluation)."""
-        meta = build_metadata(agent, env_info, {})
+        # Checked as a file would be: what the trainer evaluates is what a loader accepts.
+        meta = build_metadata(agent, env_info, {}).checked()
         return cls(meta, agent.method, agent.inference_modules())
 
     @classmethod
@@ -71,65 +157,26 @@ class InferenceModel:
         return cls(meta, method, modules)
 
     @torch.no_grad()
-    def context(self, rows: np.ndarray, mask: np.ndarray,
-                true_param=None) -> np.ndarray:
-        """Latent context of one window (rows [k, row_dim], mask [k]) as float32.
-
-        `true_param` (a number, or one per parameter) is read only by privileged
-        methods (`needs_true_param`).
-        """
+    def _context(self, rows, mask, param):
         _single_thread()
-        rows = np.asarray(rows, dtype=np.float32)
-        mask = np.asarray(mask, dtype=bool)
-        if rows.shape != (self.k, self.row_dim) or mask.shape != (self.k,):
-            raise ValueError(f'window must be rows {(self.k, self.row_dim)} and mask '
-                             f'({self.k},), got {rows.shape} and {mask.shape}')
-        param = None if true_param is None else torch.from_numpy(
-            np.asarray(true_param, dtype=np.float32).reshape(1, -1))
-        latent = self.method.deployed_context(torch.from_numpy(rows)[None],
-                                              torch.from_numpy(mask)[None], param)[0]
-        return latent.numpy().astype(np.float32)
-
-    def act(self, obs: np.ndarray, latent: np.ndarray) -> np.ndarray:
-        """Deterministic action tanh(mu) in [-1, 1] as float64."""
-        return self.act_on_features(self.features(obs), latent)
+        param = None if param is None else torch.from_numpy(param)
+        latent = self.method.deployed_context(torch.from_numpy(rows),
+                                              torch.from_numpy(mask), param)
+        return latent.numpy()
 
     @torch.no_grad()
-    def features(self, obs: np.ndarray) -> np.ndarray:
-        """phi(s) as float32: the half of `act` that needs no context.
-
-        The policy node computes it when a state arrives, while the context
-        node is still computing that state's latent.
-        """
+    def _features(self, obs):
         _single_thread()
-        obs = np.asarray(obs, dtype=np.float32).reshape(-1)
-        if obs.shape != (self.obs_dim,):
-            raise ValueError(f'obs must have {self.obs_dim} values, got {obs.size}')
-        return self.phi(torch.from_numpy(obs)[None])[0].numpy()
+        return self.phi(torch.from_numpy(obs)).numpy()
 
     @torch.no_grad()
-    def act_on_features(self, features: np.ndarray, latent: np.ndarray) -> np.ndarray:
-        """Deterministic action tanh(mu) from phi(s) (`features`) and the latent, as float64."""
+    def _act(self, features, latent):
         _single_thread()
-        latent = np.asarray(latent, dtype=np.float32).reshape(-1)
-        if latent.shape != (self.context_dim,):
-            raise ValueError(f'latent must have {self.context_dim} values, got {latent.size}')
-        x = torch.cat([torch.from_numpy(features)[None], torch.from_numpy(latent)[None]], dim=-1)
-        return self.actor.mean_action(x)[0].numpy().astype(np.float64)
+        x = torch.cat([torch.from_numpy(features), torch.from_numpy(latent)], dim=-1)
+        return self.actor.mean_action(x).numpy()
 
     @torch.no_grad()
-    def decode_values(self, latent: np.ndarray) -> np.ndarray:
-        """Physical-parameter estimates read from a latent, one per name (NaN: no decoder)."""
+    def _decode(self, latent):
         _single_thread()
-        latent = np.asarray(latent, dtype=np.float32).reshape(1, -1)
         normalised = self.method.decode(torch.from_numpy(latent))
-        if normalised is None:
-            return np.full(len(self.param_names), math.nan)
-        return normalised[0].numpy().astype(np.float64) * self.param_scale + self.param_offset
-
-    def decode(self, latent: np.ndarray) -> float:
-        """Return the estimate of a one-parameter family's parameter (NaN without a decoder)."""
-        if len(self.param_names) != 1:
-            raise ValueError(f'{self.family} has {len(self.param_names)} parameters: '
-                             'use decode_values')
-        return float(self.decode_values(latent)[0])
+        return None if normalised is None else normalised.numpy()

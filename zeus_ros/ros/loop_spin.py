@@ -3,7 +3,7 @@
 rclpy's executors rebuild a wait set over every entity of a node and wrap each
 callback in a Task at every wake-up; on this 2-core machine that costs more
 than the message hop itself, and a control step crosses three hops (see
-BENCHMARKS.md). `spin_loop` splits a node's work in two:
+docs/pages/benchmarks.md). `spin_loop` splits a node's work in two:
 
 * the LOOP subscriptions (created with `create_loop_subscription`) are waited
   on in the calling thread through one small wait set, and every ready
@@ -26,10 +26,17 @@ competes with on two cores, right when it must act.)
 Callbacks never run concurrently: both threads run them under one lock, and
 the background thread wakes the loop after each of its callbacks (a reset or a
 parameter change may have moved the deadline).
+
+The background executor is rclpy's SingleThreadedExecutor, or with
+`executor='events'` its experimental EventsExecutor (callbacks called from the
+middleware's events, no wait set), driven by spin_once with a timeout: its
+spin() fires a timer at most once in the pinned rclpy 7.1.6 wheel (see
+research/benchmarks/events_executor_repro.py for why).
 """
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from typing import Callable, NamedTuple
@@ -37,11 +44,15 @@ from typing import Callable, NamedTuple
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import (ConditionReachedException, ExternalShutdownException,
                              ShutdownException, SingleThreadedExecutor, TimeoutException)
+from rclpy.experimental import EventsExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.subscription import Subscription
 
 # Longest the loop sleeps without a message or deadline (it then checks shutdown).
 IDLE_WAKE_S = 0.1
+# The background executors spin_loop offers (the `executor` node parameter).
+EXECUTORS = ('single', 'events')
 
 
 class LoopDeadline(NamedTuple):
@@ -55,10 +66,10 @@ class LoopDeadline(NamedTuple):
 class LoopCallbackGroup(CallbackGroup):
     """Marks the loop's subscriptions: `spin_loop` takes them, rclpy's executors never do."""
 
-    def can_execute(self, entity) -> bool:  # noqa: D102
+    def can_execute(self, entity) -> bool:  # noqa: D102, ARG002 (CallbackGroup's)
         return False
 
-    def beginning_execution(self, entity) -> bool:  # noqa: D102
+    def beginning_execution(self, entity) -> bool:  # noqa: D102, ARG002 (CallbackGroup's)
         return False
 
     def ending_execution(self, entity) -> None:  # noqa: D102
@@ -66,7 +77,7 @@ class LoopCallbackGroup(CallbackGroup):
 
 
 def create_loop_subscription(node: Node, msg_type, topic: str, callback: Callable, qos,
-                             **options):
+                             **options) -> Subscription:
     """Create a subscription on the control loop's hot path (see `spin_loop`).
 
     `options` go to `Node.create_subscription` (e.g. raw=True for CDR bytes).
@@ -109,6 +120,71 @@ class _SerializedExecutor(SingleThreadedExecutor):
         handler.result()
 
 
+def _serialized(callback: Callable, lock: threading.Lock, wake_loop, errors: list) -> Callable:
+    """Wrap `callback` to run under the loop's lock, then wake the loop (signature kept).
+
+    An exception goes to `errors`, which ends the loop and is raised by
+    spin_loop, as with the single executor: left to the EventsExecutor, it
+    was first logged as FATAL with its stack (a node refusing a duplicate name
+    said more than its one line).
+    """
+    @functools.wraps(callback)   # Subscription reads the signature to choose its call
+    def run(*args):
+        try:
+            with lock:
+                return callback(*args)
+        except Exception as error:  # noqa: BLE001 (handed to the loop thread to re-raise)
+            errors.append(error)
+            return None
+        finally:
+            wake_loop.trigger_guard_condition()
+    return run
+
+
+class _ServicesView:
+    """What the EventsExecutor is given of a node: everything but the loop's subscriptions.
+
+    The EventsExecutor ignores callback groups, so it would take the loop's
+    messages too; it reads only these attributes. Each callback is wrapped once
+    to run under the loop's lock (QoS-event waitables only log, and are left as
+    they are). Entities a node creates after spin_loop started are not seen:
+    the nodes create theirs in __init__.
+    """
+
+    def __init__(self, node: Node, lock: threading.Lock, wake_loop, errors: list):
+        self.node, self.executor = node, None   # add_node sets `executor`
+        for entity in (*self.subscriptions, *node.timers, *node.services):
+            entity.callback = _serialized(entity.callback, lock, wake_loop, errors)
+
+    @property
+    def subscriptions(self) -> list:
+        loop = set(loop_subscriptions(self.node))
+        return [sub for sub in self.node.subscriptions if sub not in loop]
+
+    def __getattr__(self, name):   # timers, services, clients, waitables, guards
+        return getattr(self.node, name)
+
+
+def _services_executor(kind: str, nodes, lock: threading.Lock, wake_loop, context,
+                       errors: list):
+    """Build the background executor `kind` (EXECUTORS) over `nodes`' services and timers.
+
+    A callback's exception goes to `errors` (the events one's; the single
+    one's spin_once raises it, and `_spin_services` hands it over).
+    """
+    if kind == 'events':
+        executor = EventsExecutor(context=context)
+        for each in nodes:
+            executor.add_node(_ServicesView(each, lock, wake_loop, errors))
+        return executor
+    if kind != 'single':
+        raise ValueError(f"executor {kind!r}: use one of {', '.join(EXECUTORS)}")
+    executor = _SerializedExecutor(lock, wake_loop, context)
+    for each in nodes:
+        executor.add_node(each)
+    return executor
+
+
 def spin_in_background(node: Node) -> threading.Thread:
     """Run `spin_loop(node)` in a daemon thread, for tools that wait in their main thread.
 
@@ -129,13 +205,14 @@ def wait_until(predicate: Callable[[], object], timeout: float, poll_s: float = 
     return True
 
 
-def _spin_services(executor: SingleThreadedExecutor, errors: list) -> None:
+def _spin_services(executor, errors: list) -> None:
+    # Always with a timeout: the EventsExecutor's wait without one never sleeps.
     try:
-        while executor.context.ok():
+        while executor.context.ok() and not errors:   # an error ends the loop: stop too
             executor.spin_once(timeout_sec=IDLE_WAKE_S)
     except ExternalShutdownException:
         pass
-    except BaseException as error:  # handed to the loop thread, which re-raises it
+    except BaseException as error:  # noqa: BLE001 (handed to the loop thread to re-raise)
         errors.append(error)
 
 
@@ -150,7 +227,7 @@ def _take_all(subscription) -> None:
         callback(taken[0])
 
 
-def spin_loop(node: Node, *more: Node) -> None:
+def spin_loop(node: Node, *more: Node, executor: str = 'single') -> None:
     """Spin `node` (and `more` nodes of its context) until the context shuts down.
 
     Several nodes (composition: the three in one process) share the one loop
@@ -161,17 +238,16 @@ def spin_loop(node: Node, *more: Node) -> None:
 
     An exception raised by any callback, in either thread, ends the spin and
     is raised here, unless the context was shut down meanwhile (Ctrl-C while a
-    callback was publishing): then the spin just ends.
+    callback was publishing): then the spin just ends. `executor` (EXECUTORS)
+    chooses the background one.
     """
     nodes = (node, *more)
     context = node.context
     lock = threading.Lock()
     wake_loop = _rclpy.GuardCondition(context.handle)
-    executor = _SerializedExecutor(lock, wake_loop, context)
-    for each in nodes:
-        executor.add_node(each)
     errors: list[BaseException] = []
-    services = threading.Thread(target=_spin_services, args=(executor, errors),
+    background = _services_executor(executor, nodes, lock, wake_loop, context, errors)
+    services = threading.Thread(target=_spin_services, args=(background, errors),
                                 name='rclpy-executor', daemon=True)
     services.start()
     subscriptions = [sub for each in nodes for sub in loop_subscriptions(each)]
@@ -182,7 +258,7 @@ def spin_loop(node: Node, *more: Node) -> None:
         if context.ok():
             raise
     finally:
-        executor.shutdown(timeout_sec=1.0)
+        background.shutdown(timeout_sec=1.0)
         services.join(timeout=1.0)
     if errors and context.ok():
         raise errors[0]

@@ -15,7 +15,7 @@ Both follow the simulator's clock with a `StampFollower`, so that a restarted
 sim (its clock starts from zero again) gets control back at once, and a stray
 message stamped far ahead does not stop control. `observation_from_message`
 turns a `JointState`'s fields into an observation or says why it does not fit;
-(`sim_node.protocol.RecentCounts` keeps the nodes' diagnostic levels to the last few seconds.)
+(`zeus_ros.ros.protocol.RecentCounts` keeps the nodes' diagnostic levels to the last few seconds.)
 """
 
 from __future__ import annotations
@@ -52,19 +52,6 @@ ClockListener = Callable[[str, int, int], None]
 
 class BadMessage(ValueError):
     """A message that cannot be used (wrong joints, lengths, non-finite values)."""
-
-
-def layout_from_metadata(metadata: dict) -> ObservationLayout:
-    """Build the checkpoint's observation layout (joint names, encodings, reward entry)."""
-    obs = metadata['obs_layout']
-    velocities = obs.get('velocity_encoding')
-    layout = ObservationLayout(tuple(obs['joint_names']), tuple(obs['position_encoding']),
-                               bool(obs.get('reward_in_observation', False)),
-                               None if velocities is None else tuple(velocities))
-    if layout.size != int(obs['obs_dim']):
-        raise ValueError(f'checkpoint layout gives {layout.size} observations, '
-                         f'metadata says {obs["obs_dim"]}')
-    return layout
 
 
 def observation_from_message(layout: ObservationLayout, names, positions,
@@ -159,7 +146,7 @@ class TransitionAssembler:
         self.restarts = 0   # clocks that went back or jumped (RESTART, JUMP)
         self.outliers = 0   # states ignored for a stamp far ahead (OUTLIER)
 
-    def add_joint_state(self, stamp_ns: int, names, positions, velocities):
+    def add_joint_state(self, stamp_ns: int, names, positions, velocities) -> StateRecord | None:
         """Record a joint state; return the StateRecord it completes, if any.
 
         Raises BadMessage, before touching anything, for a state that does not fit.
@@ -169,7 +156,7 @@ class TransitionAssembler:
         return self._complete(stamp_ns)
 
     def add_step_info(self, stamp_ns: int, episode: int, step: int, reward: float,
-                      applied_action, truncated: bool):
+                      applied_action, truncated: bool) -> StateRecord | None:
         """Record a StepInfo; return the StateRecord it completes, if any.
 
         Raises BadMessage, before touching anything, for a transition that

@@ -4,7 +4,9 @@ A signal while torch, MuJoCo or rclpy load (seconds on a busy machine) would
 otherwise end the node with an import traceback or -15. `install(program,
 module_name)` exits with 0 on such a signal, but only when the module is the
 program (`python -m ...`, or the console script `program`); `run_node` takes
-the signals over once the node starts. Imports nothing heavy.
+the signals over once the node starts. It also arms `parent_watch` there, so
+that a launcher that dies while the node imports ends it too. Imports nothing
+heavy.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 import os
 import signal
 import sys
+
+from zeus_ros.ros.parent_watch import end_with_launcher
 
 
 def _exit_quietly(_signum, _frame) -> None:
@@ -24,4 +28,5 @@ def install(program: str, module_name: str) -> bool:
         return False
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, _exit_quietly)
+    end_with_launcher()
     return True

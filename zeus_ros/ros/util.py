@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 import time
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
@@ -20,8 +21,10 @@ from rclpy.logging import get_logger_level, LoggingSeverity, set_logger_level
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
-from sim_node.protocol import ns_to_stamp, stamp_to_ns
-from zeus_ros.ros.loop_spin import spin_loop
+from zeus_ros.ros.protocol import ns_to_stamp, stamp_to_ns
+from zeus_ros.ros.loop_spin import EXECUTORS, spin_loop
+from zeus_ros.ros.parent_watch import end_with_launcher
+from zeus_ros.ros.unique_name import DISCOVERY_WAIT_S, DuplicateNode, NameGuard
 
 # Reliable, keep-last 10, volatile on every topic of the loop. Lockstep needs
 # reliability (a lost state or command stalls a step until the timeout and
@@ -61,6 +64,20 @@ def declare_thread_priority(node) -> int:
     return node.get_parameter('thread_priority').value
 
 
+def declare_executor(node) -> str:
+    """Declare `executor` once and return it; a value not in EXECUTORS raises BadParameter."""
+    if not node.has_parameter('executor'):
+        node.declare_parameter('executor', 'single', describe(
+            "The executor of the node's services and timers beside the control loop: "
+            "'single' (rclpy's SingleThreadedExecutor) or 'events' (rclpy's experimental "
+            "EventsExecutor). Composed nodes use the first node's (read-only).",
+            read_only=True))
+    value = node.get_parameter('executor').value
+    if value not in EXECUTORS:
+        raise BadParameter(f"parameter executor: {value!r} is not one of {', '.join(EXECUTORS)}")
+    return value
+
+
 def apply_thread_priority(node) -> int:
     """Run the calling thread under SCHED_FIFO at `thread_priority` if it is > 0.
 
@@ -84,6 +101,10 @@ def apply_thread_priority(node) -> int:
 
 class UnknownParameters(ValueError):
     """Parameters given at start (-p, a params file) that the node does not have."""
+
+
+class BadParameter(ValueError):
+    """A value given at start that the node's own checks refuse."""
 
 
 def _overrides(node) -> dict:
@@ -148,7 +169,8 @@ def _is_double(node, name: str) -> bool:
             and node.describe_parameter(name).type == ParameterType.PARAMETER_DOUBLE)
 
 
-def call_service(client, request, wait, timeout: float = 30.0, attempt_s: float = 3.0):
+def call_service(client, request, wait, timeout: float = 30.0,
+                 attempt_s: float = 3.0) -> Any:
     """Call a service and return its response, re-sending a request left unanswered.
 
     Discovery is not symmetric: a client can see a new server (so
@@ -213,6 +235,38 @@ class ThrottledWarnings:
         if now - self._last.get(key, float('-inf')) >= self.period_s:
             self._last[key] = now
             self.logger.warning(text)
+
+
+class FirstContact:
+    """A loop's timeouts before its first message are the start-up, not a fault.
+
+    Nodes start in any order and a topic's first messages go out before every
+    reader has matched, so a timeout before the awaited message has ever come
+    is said once at INFO (`waiting`); after first contact each one is a
+    throttled warning. The diagnostics count both either way.
+    """
+
+    def __init__(self, logger, warnings: ThrottledWarnings, waiting: str):
+        self.logger, self.warnings, self.waiting = logger, warnings, waiting
+        self.contacted = False
+        self._noted = False
+
+    def seen(self) -> None:
+        """Record that the awaited message came: from now on a timeout is a warning."""
+        self.contacted = True
+
+    def timed_out(self, key: str, text: str) -> bool:
+        """Warn of a timeout after first contact; before it, note the wait once.
+
+        Return whether contact was made (before it, a caller may hold back
+        what it does on a timeout).
+        """
+        if self.contacted:
+            self.warnings.warn(key, text)
+        elif not self._noted:
+            self._noted = True
+            self.logger.info(self.waiting)
+        return self.contacted
 
 
 class RateMeter:
@@ -343,7 +397,7 @@ class StopSignals:
         self._shutdown_wanted.wait()
         try:
             rclpy.try_shutdown()
-        except Exception as error:  # the main thread closes the node anyway
+        except Exception as error:  # noqa: BLE001 (the main thread closes the node anyway)
             print(f'stopping: {error}', file=sys.stderr)
 
 
@@ -371,13 +425,37 @@ def _init_rclpy(args) -> str | None:
     return None
 
 
+# Seconds the start-up name check looks at the graph (unique_name); 0 leaves the
+# duplicate-name refusal to the check that runs for the node's life.
+NAME_WAIT_ENV = 'ZEUS_NAME_WAIT_S'
+
+
+def name_wait_s() -> float:
+    """Return the start-up name check's wait: $ZEUS_NAME_WAIT_S, else DISCOVERY_WAIT_S."""
+    raw = os.environ.get(NAME_WAIT_ENV)
+    if raw is None:
+        return DISCOVERY_WAIT_S
+    try:
+        value = float(raw)
+    except ValueError:
+        value = -1.0
+    if not value >= 0:   # also NaN
+        raise BadParameter(f'{NAME_WAIT_ENV}={raw!r}: give seconds >= 0')
+    return value
+
+
 def _start(node_class):
     """Build the node and check what it was given at start, before it spins."""
+    created_at, started_ns = time.monotonic(), time.time_ns()
     node = node_class()
+    # Its start record goes out now: other nodes' checks see it while this one starts.
+    node.name_guard = NameGuard(node, started_ns)
     declare_thread_priority(node)
+    declare_executor(node)
     refuse_unknown_overrides(node)
     accept_integers_for_doubles(node)
     apply_thread_priority(node)
+    node.name_guard.check_at_start(created_at, name_wait_s())
     # Everything built so far (modules, weights, the node) lives for the
     # process: keep it out of the collector's full passes, which would
     # otherwise walk it every time and stall the loop for milliseconds.
@@ -394,7 +472,7 @@ def _close(nodes: list, name: str) -> None:
     for step in steps:
         try:
             step()
-        except Exception as error:  # closing anyway: say so in one line, go on
+        except Exception as error:  # noqa: BLE001 (closing anyway: say so in a line, go on)
             print(f'{name}: while closing: {error}', file=sys.stderr)
 
 
@@ -403,8 +481,11 @@ def run_node(node_class, args=None, fatal: tuple = ()) -> int:
 
     0 after a signal at any moment, once or repeatedly (see StopSignals). 1,
     with one line on stderr, for a bad command line, a parameter given at start
-    that the node refuses (out of range, wrong type) or does not have, or a
-    `fatal` error.
+    that the node refuses (out of range, wrong type) or does not have, an older
+    node of its name on the graph (at start or later: zeus_ros.ros.unique_name),
+    or a `fatal` error. A node's `on_started()`, if it has one, is called once
+    every check has passed, just before it spins: work that must not begin
+    before (the sim's camera thread) starts there.
     """
     return run_nodes((node_class,), args, fatal)
 
@@ -421,6 +502,7 @@ def run_nodes(node_classes, args=None, fatal: tuple = (), name: str | None = Non
     name = name or node_classes[0].__name__
     try:
         stop.install()
+        end_with_launcher()   # a launcher's end is a SIGTERM to its nodes (parent_watch)
         return _run(tuple(node_classes), args, fatal, stop, name)
     except StopRequested:
         return 0  # the first signal came while a failed start-up was being reported
@@ -433,7 +515,7 @@ def _start_failure(error: Exception, where: str, fatal: tuple) -> int:
         reason, _, parameter = str(error).rpartition(': ')
         print(f'{where}: parameter {parameter}: {reason}', file=sys.stderr)
         return 1
-    if isinstance(error, (UnknownParameters, *fatal)):
+    if isinstance(error, (UnknownParameters, BadParameter, DuplicateNode, *fatal)):
         print(f'{where}: {error}', file=sys.stderr)
         return 1
     raise error
@@ -449,12 +531,17 @@ def _run(node_classes: tuple, args, fatal: tuple, stop: StopSignals, name: str) 
         for node_class in node_classes:
             where = node_class.__name__
             nodes.append(_start(node_class))
+        for node in nodes:   # every check passed: what waited for it may begin
+            where = type(node).__name__
+            if hasattr(node, 'on_started'):
+                node.on_started()
         where = name
         stop.spinning = True
-        spin_loop(*nodes)
+        spin_loop(*nodes, executor=nodes[0].get_parameter('executor').value)
     except (StopRequested, ExternalShutdownException):
         pass
-    except Exception as error:
+    # Every error is sorted here: a stop's, a user's (one line, exit 1), or re-raised.
+    except Exception as error:  # noqa: BLE001
         if stop.stopping:
             # A signal came first: whatever failed after it failed because of the
             # stop (native code, e.g. safetensors' loader, turns the StopRequested

@@ -10,6 +10,7 @@ from zeus_ros.core.methods.base import ContextMethod, Dims, ParamScale
 from zeus_ros.core.methods.cadm import CadmMethod
 from zeus_ros.core.methods.hyperdynamics import HyperDynamicsMethod
 from zeus_ros.core.methods.oracle import OracleMethod
+from zeus_ros.core.methods.rma import RmaMethod
 from zeus_ros.core.methods.sac import SacMethod
 from zeus_ros.core.methods.zeus import ZeusMethod, ZeusNoContextLoss
 from zeus_ros.core.methods.up_osi import UpOsiMethod
@@ -18,7 +19,8 @@ from zeus_ros.core.methods.zeus_osi import ZeusOsiMethod
 
 METHODS: dict[str, type[ContextMethod]] = {
     m.name: m for m in (ZeusMethod, ZeusNoContextLoss, SacMethod, OracleMethod, ZeusIdMethod,
-                        CadmMethod, UpOsiMethod, HyperDynamicsMethod, ZeusOsiMethod)}
+                        CadmMethod, UpOsiMethod, HyperDynamicsMethod, ZeusOsiMethod,
+                        RmaMethod)}
 
 
 def get_method(name: str) -> type[ContextMethod]:

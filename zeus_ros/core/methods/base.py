@@ -8,20 +8,20 @@ window (or from the true parameter, for privileged references), whether the
 critic's TD error may shape it, its own losses, and how a physical-parameter
 estimate is read from a latent. A new method is a module in this package that
 subclasses `ContextMethod` and registers itself in `METHODS`; the trainer,
-the checkpoint code and the nodes need no change.
+the checkpoint code and the nodes need no change. Settings only the method
+reads go in its own `MethodSettings` subclass (`settings_class`), not in the
+shared config; the metrics its `update` returns are named in `metric_names`
+(the train log's columns).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, TYPE_CHECKING
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 from torch import nn
-
-if TYPE_CHECKING:  # config imports the registry; the methods only read a config
-    from zeus_ros.core.config import ZeusConfig
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,27 @@ class ParamScale:
         """Physical values [B, P] -> normalised (train values span [0, 1] per parameter)."""
         return (value - value.new_tensor(self.offset)) / value.new_tensor(self.scale)
 
-    def physical(self, normalised):
+    def physical(self, normalised) -> np.ndarray:
         """Normalised values [..., P] (numpy) -> physical values."""
         return normalised * np.asarray(self.scale) + np.asarray(self.offset)
+
+
+@dataclass(frozen=True)
+class MethodSettings:
+    """Settings one method (or one family of methods) reads; the base has none.
+
+    A method declares a frozen subclass in its own module, each field with
+    `zeus_ros.core.settings.setting(default, help)`, and names it in
+    `ContextMethod.settings_class`; the command line and `--help` pick it up.
+    Field names are keys of the checkpoint's flat config dict, so they never
+    reuse a shared `ZeusConfig` field's name. A field's default is what a
+    checkpoint written before the field existed meant (absent = that value);
+    what a new run of the method starts with is its `config_defaults` preset.
+    """
+
+    def validate(self) -> 'MethodSettings':
+        """Raise ValueError naming the first bad field ('<field> must be ...'); return self."""
+        return self
 
 
 def adam(params, lr: float, betas=(0.9, 0.999)) -> torch.optim.Adam:
@@ -99,8 +117,12 @@ class ContextMethod:
     critic_trains_context: ClassVar[bool] = False
     # The method has losses of its own: `update` runs (and phi(s) is computed for it).
     has_own_update: ClassVar[bool] = False
-    # Config fields this method presets (a user's --set still wins).
+    # Config fields (shared or its own settings) this method presets (a user's --set wins).
     config_defaults: ClassVar[dict] = {}
+    # The settings only this method reads (`self.settings`, the config's `method_settings`).
+    settings_class: ClassVar[type[MethodSettings]] = MethodSettings
+    # The names of the metrics `update` may return (the train log's columns for them).
+    metric_names: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -108,8 +130,14 @@ class ContextMethod:
         if cls.update is not ContextMethod.update and not cls.has_own_update:
             raise TypeError(f'{cls.__name__} defines update(): set has_own_update = True')
 
-    def __init__(self, cfg: 'ZeusConfig', dims: Dims, param: ParamScale, training: bool = True):
+    # `cfg` is a zeus_ros.core.config.ZeusConfig, not imported: config imports this
+    # registry to check a config's method, so the methods only read the config they get.
+    def __init__(self, cfg: Any, dims: Dims, param: ParamScale, training: bool = True):
         self.cfg, self.dims, self.param = cfg, dims, param
+        if not isinstance(cfg.method_settings, self.settings_class):
+            raise TypeError(f'{self.name} reads {self.settings_class.__name__}, got '
+                            f'{type(cfg.method_settings).__name__}')
+        self.settings = cfg.method_settings
         self.training = training
 
     @property
@@ -133,8 +161,10 @@ class ContextMethod:
         """Parameters the critic's optimiser trains when `critic_trains_context`."""
         return []
 
-    def encode(self, rows: torch.Tensor, mask: torch.Tensor,
-               param: torch.Tensor | None) -> torch.Tensor:
+    # Base hooks (here and below) ignore arguments their overrides use: hence the noqas.
+    def encode(self, rows: torch.Tensor,
+               mask: torch.Tensor,  # noqa: ARG002
+               param: torch.Tensor | None) -> torch.Tensor:  # noqa: ARG002
         """Latent context [B, context_dim] of windows rows [B, k, D], mask [B, k]."""
         return rows.new_zeros((rows.shape[0], 0))
 
@@ -150,6 +180,16 @@ class ContextMethod:
         with torch.set_grad_enabled(grad):
             current = self.encode(batch.ctx_rows, batch.ctx_mask, batch.param)
         return current, following
+
+    def actor_context(self, batch, critic_latent: torch.Tensor,  # noqa: ARG002
+                      following: bool = False) -> torch.Tensor:  # noqa: ARG002
+        """Latent the ACTOR reads in the losses (before s_{t+1} if `following`): the critic's.
+
+        An asymmetric method (rma with `rma_asymmetric`) gives the actor its
+        deployed estimate while the critic keeps the privileged latent, so the
+        policy learns to act on what it will have when deployed.
+        """
+        return critic_latent
 
     def acting_context(self, rows, mask, param) -> torch.Tensor:
         """Latent the trainer acts on while collecting (UP-OSI switches to its estimate)."""
@@ -167,10 +207,11 @@ class ContextMethod:
     def update_targets(self, tau: float) -> None:
         """Move the method's target networks (if any) towards the online ones."""
 
-    def update(self, batch, z: torch.Tensor, step: int) -> dict[str, torch.Tensor]:
+    def update(self, batch,  # noqa: ARG002
+               z: torch.Tensor, step: int) -> dict[str, torch.Tensor]:  # noqa: ARG002
         """Run the method's own losses and optimiser steps; `z` = phi(s), detached."""
         return {}
 
-    def decode(self, latent: torch.Tensor) -> torch.Tensor | None:
+    def decode(self, latent: torch.Tensor) -> torch.Tensor | None:  # noqa: ARG002
         """Normalised parameter estimates [B, param_dim] from latents, or None (no decoder)."""
         return None

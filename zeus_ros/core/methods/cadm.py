@@ -14,23 +14,43 @@ permutation-invariant window, the aggregation choices shared by all methods.
 
 from __future__ import annotations
 
-from zeus_ros.core.methods.common import EncoderMethod, gaussian_nll
+from dataclasses import dataclass
+
+from zeus_ros.core.methods.common import (EncoderMethod, EncoderSettings, gaussian_nll,
+                                          ModelLoss)
 from zeus_ros.core.networks import GaussianModel
+from zeus_ros.core.settings import setting
+
+
+@dataclass(frozen=True)
+class CadmSettings(EncoderSettings):
+    """The learned-encoder settings plus the weight of CaDM's backward model."""
+
+    backward_weight: float = setting(
+        0.5, 'cadm: weight beta of the backward dynamics loss (Table 10).')
+
+    def validate(self) -> 'CadmSettings':
+        super().validate()
+        if self.backward_weight < 0:
+            raise ValueError('backward_weight must be >= 0')
+        return self
 
 
 class CadmMethod(EncoderMethod):
     """Encoder shaped by forward + beta * backward dynamics prediction."""
 
     name = 'cadm'
+    settings_class = CadmSettings
+    metric_names = ('dynamics_loss', 'backward_loss', 'decoder_loss')
     config_defaults = {'context_input': 'delta', 'context_critic_grad': False,
                        'backward_weight': 0.5}
 
-    def build_models(self):
+    def build_models(self) -> dict[str, GaussianModel]:
         cfg, o, a = self.cfg, self.dims.obs_dim, self.dims.action_dim
         return {name: GaussianModel(o, a, cfg.context_dim, cfg.dynamics_hidden,
                                     cfg.dynamics_layers) for name in ('T_forward', 'T_backward')}
 
-    def model_loss(self, b):
+    def model_loss(self, b) -> ModelLoss:
         x, delta = self.standardised_step(b)
         # s' standardised like s (the row standardiser's statistics of s).
         o, norm = self.dims.obs_dim, self.psi.norm
@@ -38,5 +58,5 @@ class CadmMethod(EncoderMethod):
         c = self.psi(b.ctx_rows, b.ctx_mask)
         forward = gaussian_nll(*self.models['T_forward'](x, b.action, c), delta)
         backward = gaussian_nll(*self.models['T_backward'](x_next, b.action, c), -delta)
-        loss = forward + self.cfg.backward_weight * backward
+        loss = forward + self.settings.backward_weight * backward
         return loss, c, {'dynamics_loss': forward.detach(), 'backward_loss': backward.detach()}

@@ -8,17 +8,56 @@
 * `EncoderMethod`: psi + the method's own models trained by one optimiser on
   the method's loss, and a decoder probe on the DETACHED latent. Subclasses
   write `build_models` and `model_loss`; whether the critic's TD error also
-  trains psi is the config's `context_critic_grad`.
+  trains psi is their settings' `context_critic_grad`.
+* `EncoderSettings`: what every learned-encoder method reads and the paper's
+  `zeus` does not; each method's own settings extend it.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import adam, ContextMethod
+from zeus_ros.core.methods.base import adam, ContextMethod, MethodSettings
 from zeus_ros.core.networks import ContextEncoder, ParamDecoder, weight_init
+from zeus_ros.core.settings import setting
+
+CONTEXT_INPUTS = ('transition', 'delta')
+CONTEXT_ENCODERS = ('deepset', 'relational', 'temporal')
+# What a method's model_loss returns: (loss, latent of the batch's windows, metrics).
+ModelLoss = tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]
+
+
+@dataclass(frozen=True)
+class EncoderSettings(MethodSettings):
+    """What every learned-encoder method reads (zeus-id, zeus-osi, cadm, up-osi, ...)."""
+
+    context_input: str = setting(
+        'transition', "What psi reads per row: 'transition' = concat(s, a, r, s'), "
+        "'delta' = concat(s, a, r, s' - s); both standardised by running statistics.",
+        choices=CONTEXT_INPUTS)
+    context_encoder: str = setting(
+        'deepset', "psi's shape: 'deepset' = pooled per-row codes; 'relational' = each row "
+        'also reads its deviation from the window mean (codes can depend on how transitions '
+        "co-vary); 'temporal' = 1-D convolutions over the window in order (RMA's adaptation "
+        'module).', choices=CONTEXT_ENCODERS)
+    context_critic_grad: bool = setting(
+        True, "Let the critic's TD loss train psi (zeus, not one of these, always does).")
+    id_weight: float = setting(
+        0.0, 'Weight of the parameter-regression loss THROUGH psi (privileged supervision in '
+        'training, as UP-OSI; 0 = the decoder reads a detached latent, a pure probe).')
+
+    def validate(self) -> 'EncoderSettings':
+        if self.context_input not in CONTEXT_INPUTS:
+            raise ValueError("context_input must be 'transition' or 'delta'")
+        if self.context_encoder not in CONTEXT_ENCODERS:
+            raise ValueError("context_encoder must be 'deepset', 'relational' or 'temporal'")
+        if self.id_weight < 0:
+            raise ValueError('id_weight must be >= 0')
+        return self
 
 
 def safe_norm(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
@@ -79,26 +118,37 @@ class StandardisedContextEncoder(nn.Module):
     cannot. Still invariant to the order of the rows and to the padding.
     """
 
-    def __init__(self, obs_dim: int, row_dim: int, cfg, out_dim: int | None = None):
+    def __init__(self, obs_dim: int, row_dim: int, cfg, settings: EncoderSettings,
+                 out_dim: int | None = None):
         super().__init__()
         self.obs_dim = obs_dim
-        self.delta = cfg.context_input == 'delta'
-        self.relational = cfg.context_encoder == 'relational'
+        self.delta = settings.context_input == 'delta'
+        self.relational = settings.context_encoder == 'relational'
         self.norm = RunningStandardiser(row_dim)
+        if settings.context_encoder == 'temporal':
+            self.encoder = TemporalConvEncoder(row_dim, out_dim or cfg.context_dim,
+                                               cfg.context_hidden, cfg.context_layers)
+            return
         self.encoder = ContextEncoder(row_dim * (2 if self.relational else 1),
                                       out_dim or cfg.context_dim, cfg.context_hidden,
                                       cfg.context_layers, cfg.aggregation)
+
+    @property
+    def temporal(self) -> bool:
+        """True when psi reads the window in order (a temporal convolution)."""
+        return isinstance(self.encoder, TemporalConvEncoder)
 
     def features(self, rows: torch.Tensor) -> torch.Tensor:
         """Return what psi reads of each row, before standardising."""
         return transition_features(rows, self.obs_dim, self.delta)
 
-    def window_pair(self, chain_rows, chain_mask, grad: bool):
+    def window_pair(self, chain_rows, chain_mask,
+                    grad: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Both windows' latents from one pass over a chain (see ContextEncoder.window_pair).
 
-        None for the relational encoder: a row's code depends on its window.
+        None for the relational and temporal encoders: a row's code depends on its window.
         """
-        if self.relational:
+        if self.relational or self.temporal:
             return None
         with torch.set_grad_enabled(grad):
             codes = self.encoder.codes(self.norm(self.features(chain_rows)))
@@ -106,6 +156,8 @@ class StandardisedContextEncoder(nn.Module):
 
     def forward(self, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         x = self.norm(self.features(rows))
+        if self.temporal:
+            return self.encoder(x, mask)
         if self.relational:
             valid = mask.unsqueeze(-1).to(x.dtype)
             mean = (x * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp(min=1.0)
@@ -113,17 +165,47 @@ class StandardisedContextEncoder(nn.Module):
         return self.encoder.pool(self.encoder.codes(x), mask)
 
 
+class TemporalConvEncoder(nn.Module):
+    """RMA's adaptation-module shape: per-step embedding, 1-D convolutions over time, pooling.
+
+    Unlike the deep sets it reads the window in order, so it can use how the
+    state evolves from one transition to the next. Padding rows (mask False)
+    are zeroed before and after every convolution and left out of the mean
+    over time, so the latent does not depend on what the padding holds.
+    An empty window gives the head's bias (the latent of "no evidence").
+    """
+
+    KERNEL = 5
+
+    def __init__(self, row_dim: int, out_dim: int, hidden: int, layers: int):
+        super().__init__()
+        self.embed = nn.Linear(row_dim, hidden)
+        self.convs = nn.ModuleList(
+            nn.Conv1d(hidden, hidden, self.KERNEL, padding=self.KERNEL // 2)
+            for _ in range(max(layers, 1)))
+        self.head = nn.Linear(hidden, out_dim)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        m = mask.to(x.dtype).unsqueeze(1)                        # [B, 1, k]
+        h = F.relu(self.embed(x)).transpose(1, 2) * m            # [B, hidden, k]
+        for conv in self.convs:
+            h = F.relu(conv(h)) * m
+        pooled = h.sum(-1) / m.sum(-1).clamp(min=1.0)
+        return self.head(pooled)
+
+
 class EncoderMethod(ContextMethod):
     """psi over the window, the method's models, one optimiser on its loss, a decoder probe."""
 
     has_own_update = True
     has_decoder = True
+    settings_class = EncoderSettings
 
     def __init__(self, cfg, dims, param, training=True):
         super().__init__(cfg, dims, param, training)
-        self.psi = StandardisedContextEncoder(dims.obs_dim, dims.row_dim, cfg,
+        self.psi = StandardisedContextEncoder(dims.obs_dim, dims.row_dim, cfg, self.settings,
                                               self.encoder_dim)
-        self.decoder = ParamDecoder(cfg.context_dim, cfg.decoder_hidden, param.param_dim) \
+        self.decoder = ParamDecoder(self.encoder_dim, cfg.decoder_hidden, param.param_dim) \
             if self.has_decoder else None
         if not training:
             return
@@ -141,7 +223,7 @@ class EncoderMethod(ContextMethod):
         """Build the method's training-only networks, by checkpoint prefix."""
         return {}
 
-    def model_loss(self, b):
+    def model_loss(self, b) -> ModelLoss:
         """Return (loss, latent of the batch's windows, metrics) of the method's objective."""
         raise NotImplementedError
 
@@ -153,38 +235,38 @@ class EncoderMethod(ContextMethod):
 
     @property
     def critic_trains_context(self) -> bool:
-        return self.cfg.context_critic_grad
+        return self.settings.context_critic_grad
 
     @property
     def context_dim(self) -> int:
         return self.encoder_dim
 
-    def inference_modules(self):
+    def inference_modules(self) -> dict[str, nn.Module]:
         return {'psi': self.psi, **({'decoder': self.decoder} if self.decoder else {})}
 
-    def training_modules(self):
+    def training_modules(self) -> dict[str, nn.Module]:
         return dict(self.models)
 
-    def optimizers(self):
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         opts = {'model_opt': self.model_opt}
         if self.decoder is not None:
             opts['decoder_opt'] = self.decoder_opt
         return opts
 
-    def encoder_parameters(self):
+    def encoder_parameters(self) -> list[nn.Parameter]:
         return list(self.psi.parameters())
 
-    def encode(self, rows, mask, param):
+    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         return self.psi(rows, mask)
 
-    def encode_pair(self, batch, grad):
+    def encode_pair(self, batch, grad) -> tuple[torch.Tensor, torch.Tensor]:
         pair = self.psi.window_pair(batch.chain_rows, batch.chain_mask, grad)
         return pair if pair is not None else super().encode_pair(batch, grad)
 
-    def decode(self, latent):
+    def decode(self, latent) -> torch.Tensor:
         return self.decoder(latent)
 
-    def standardised_step(self, b):
+    def standardised_step(self, b) -> tuple[torch.Tensor, torch.Tensor]:
         """Standardised s and s' - s of the batch's own transitions (no gradient)."""
         o = self.dims.obs_dim
         row = torch.cat([b.obs, b.action, b.reward[:, None], b.next_obs], dim=-1)
@@ -194,7 +276,7 @@ class EncoderMethod(ContextMethod):
         delta = b.next_obs - b.obs   # raw-row ablation: scale the delta by its batch std
         return feats[:, :o], delta / (delta.std(0) + 1e-4)
 
-    def update(self, batch, z, step):
+    def update(self, batch, z, step) -> dict[str, torch.Tensor]:  # noqa: ARG002 (ContextMethod's signature)
         valid_rows = batch.ctx_rows[batch.ctx_mask]
         if valid_rows.shape[0] > 1:
             self.psi.norm.observe(self.psi.features(valid_rows))
@@ -203,10 +285,11 @@ class EncoderMethod(ContextMethod):
         if self.decoder is not None:
             # id_weight > 0: the regression also shapes psi (privileged, as UP-OSI's OSI);
             # 0: the decoder is a probe on the detached latent.
-            read = c if self.cfg.id_weight > 0 else c.detach()
+            weight = self.settings.id_weight
+            read = c if weight > 0 else c.detach()
             decoder_loss = F.mse_loss(self.decoder(read), self.param.normalise(batch.param))
-            loss = loss + self.cfg.id_weight * decoder_loss if self.cfg.id_weight > 0 \
-                else loss
+            if weight > 0:
+                loss = loss + weight * decoder_loss
             metrics['decoder_loss'] = decoder_loss.detach()
         self._step(loss, decoder_loss)
         return metrics
@@ -218,12 +301,12 @@ class EncoderMethod(ContextMethod):
             self.model_opt.step()
             return
         self.decoder_opt.zero_grad(set_to_none=True)
-        if self.cfg.id_weight > 0:
+        if self.settings.id_weight > 0:
             loss.backward()            # includes id_weight * decoder loss
             # the decoder learns at its own rate from the unweighted loss's gradient
             for p in self.decoder.parameters():
                 if p.grad is not None:
-                    p.grad.div_(self.cfg.id_weight)
+                    p.grad.div_(self.settings.id_weight)
         else:
             loss.backward()
             decoder_loss.backward()

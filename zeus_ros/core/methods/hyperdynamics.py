@@ -12,11 +12,23 @@ public code was found; this follows the paper's description.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import nn
 
-from zeus_ros.core.methods.common import EncoderMethod, gaussian_nll
+from zeus_ros.core.methods.common import (EncoderMethod, EncoderSettings, gaussian_nll,
+                                          ModelLoss)
 from zeus_ros.core.networks import mlp
+from zeus_ros.core.settings import setting
+
+
+@dataclass(frozen=True)
+class HyperDynamicsSettings(EncoderSettings):
+    """The learned-encoder settings plus the size of the generated dynamics model."""
+
+    hyper_model_hidden: int = setting(
+        64, 'hyperdynamics: hidden width of the generated dynamics model.')
 
 
 class HyperNetwork(nn.Module):
@@ -31,7 +43,7 @@ class HyperNetwork(nn.Module):
         self.sizes = [int(torch.tensor(s).prod()) for s in self.shapes]
         self.net = mlp(context_dim, hyper_hidden, sum(self.sizes), 1)
 
-    def forward(self, c: torch.Tensor, x: torch.Tensor):
+    def forward(self, c: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and log-std of the generated model at inputs x [B, in_dim]."""
         w1, b1, w2, b2 = torch.split(self.net(c), self.sizes, dim=-1)
         n = c.shape[0]
@@ -48,13 +60,15 @@ class HyperDynamicsMethod(EncoderMethod):
 
     name = 'hyperdynamics'
     config_defaults = {'context_input': 'delta', 'context_critic_grad': True}
+    settings_class = HyperDynamicsSettings
+    metric_names = ('dynamics_loss', 'decoder_loss')
 
-    def build_models(self):
+    def build_models(self) -> dict[str, HyperNetwork]:
         cfg, o, a = self.cfg, self.dims.obs_dim, self.dims.action_dim
-        return {'hyper': HyperNetwork(cfg.context_dim, o + a, cfg.hyper_model_hidden, o,
+        return {'hyper': HyperNetwork(cfg.context_dim, o + a, self.settings.hyper_model_hidden, o,
                                       cfg.dynamics_hidden)}
 
-    def model_loss(self, b):
+    def model_loss(self, b) -> ModelLoss:
         x, delta = self.standardised_step(b)
         c = self.psi(b.ctx_rows, b.ctx_mask)
         mu, log_std = self.models['hyper'](c, torch.cat([x, b.action], dim=-1))

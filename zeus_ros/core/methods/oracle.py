@@ -8,8 +8,12 @@ evaluator, and on ROS the parameter the sim publishes in StepInfo).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
 
 from zeus_ros.core.methods.base import ContextMethod
+
+if TYPE_CHECKING:
+    import torch
 
 
 class OracleMethod(ContextMethod):
@@ -22,10 +26,10 @@ class OracleMethod(ContextMethod):
     def context_dim(self) -> int:
         return self.param.param_dim
 
-    def encode(self, rows, mask, param):
+    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         if param is None:
             raise ValueError('the oracle method needs the true parameter')
         return self.param.normalise(self.param.as_rows(param))
 
-    def decode(self, latent):
+    def decode(self, latent) -> torch.Tensor:
         return latent

@@ -15,10 +15,32 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import torch.nn.functional as F
 
 from zeus_ros.core.methods.base import ContextMethod
-from zeus_ros.core.methods.common import EncoderMethod
+from zeus_ros.core.methods.common import EncoderMethod, EncoderSettings, ModelLoss
+from zeus_ros.core.settings import setting
+
+if TYPE_CHECKING:
+    import torch
+
+
+@dataclass(frozen=True)
+class UpOsiSettings(EncoderSettings):
+    """The learned-encoder settings plus how long UP collects before OSI acts."""
+
+    osi_warmup_updates: int = setting(
+        800, 'up-osi: updates that collect with the true parameter before OSI acts '
+        '(the paper: 3-5 of 500 iterations; 4/500 of 100k updates).')
+
+    def validate(self) -> 'UpOsiSettings':
+        super().validate()
+        if self.osi_warmup_updates < 0:
+            raise ValueError('osi_warmup_updates must be >= 0')
+        return self
 
 
 class UpOsiMethod(EncoderMethod):
@@ -27,6 +49,8 @@ class UpOsiMethod(EncoderMethod):
     name = 'up-osi'
     has_decoder = False
     config_defaults = {'context_input': 'delta', 'context_critic_grad': False}
+    settings_class = UpOsiSettings
+    metric_names = ('osi_loss',)
 
     def __init__(self, cfg, dims, param, training=True):
         super().__init__(cfg, dims, param, training)
@@ -40,7 +64,7 @@ class UpOsiMethod(EncoderMethod):
     def critic_trains_context(self) -> bool:
         return False
 
-    def encode(self, rows, mask, param):
+    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         if param is None:
             raise ValueError('UP is trained on the true parameter: pass it')
         return self.param.normalise(self.param.as_rows(param))
@@ -48,22 +72,22 @@ class UpOsiMethod(EncoderMethod):
     # In training the latent is the true parameter, not psi's: no codes to share.
     encode_pair = ContextMethod.encode_pair
 
-    def acting_context(self, rows, mask, param):
-        if param is not None and self.updates < self.cfg.osi_warmup_updates:
+    def acting_context(self, rows, mask, param) -> torch.Tensor:
+        if param is not None and self.updates < self.settings.osi_warmup_updates:
             return self.encode(rows, mask, param)
         return self.psi(rows, mask)
 
-    def deployed_context(self, rows, mask, param):
+    def deployed_context(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         return self.psi(rows, mask)
 
-    def decode(self, latent):
+    def decode(self, latent) -> torch.Tensor:
         return latent
 
-    def model_loss(self, b):
+    def model_loss(self, b) -> ModelLoss:
         estimate = self.psi(b.ctx_rows, b.ctx_mask)
         loss = F.mse_loss(estimate, self.param.normalise(b.param))
         return loss, estimate, {'osi_loss': loss.detach()}
 
-    def update(self, batch, z, step):
-        self.updates += 1
+    def update(self, batch, z, step) -> dict[str, torch.Tensor]:
+        self.updates = step   # the agent's update count: a resumed run keeps its warm-up done
         return super().update(batch, z, step)

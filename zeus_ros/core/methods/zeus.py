@@ -17,14 +17,32 @@
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import adam, ContextMethod, soft_update
-from zeus_ros.core.methods.common import gaussian_nll, safe_norm, w2_diag_gaussians
+from zeus_ros.core.methods.base import adam, ContextMethod, MethodSettings, soft_update
+from zeus_ros.core.methods.common import gaussian_nll, ModelLoss, safe_norm, w2_diag_gaussians
 from zeus_ros.core.networks import (ContextEncoder, GaussianModel, ParamDecoder, RewardModel,
                                     weight_init)
+from zeus_ros.core.settings import setting
+
+DYNAMICS_LOSSES = ('nll', 'mse')
+
+
+@dataclass(frozen=True)
+class ZeusSettings(MethodSettings):
+    """What only the paper's method (and its no-context-loss ablation) reads."""
+
+    dynamics_loss: str = setting(
+        'nll', "Loss of T in phi-space: 'nll' = Gaussian NLL (trains mean and log-std); "
+        "'mse' = mean only.", choices=DYNAMICS_LOSSES)
+
+    def validate(self) -> 'ZeusSettings':
+        if self.dynamics_loss not in DYNAMICS_LOSSES:
+            raise ValueError("dynamics_loss must be 'nll' or 'mse'")
+        return self
 
 
 class ZeusMethod(ContextMethod):
@@ -33,6 +51,8 @@ class ZeusMethod(ContextMethod):
     name = 'zeus'
     has_own_update = True
     critic_trains_context = True
+    settings_class = ZeusSettings
+    metric_names = ('dynamics_loss', 'reward_loss', 'context_loss', 'decoder_loss')
 
     def __init__(self, cfg, dims, param, training=True):
         super().__init__(cfg, dims, param, training)
@@ -58,34 +78,34 @@ class ZeusMethod(ContextMethod):
     def context_dim(self) -> int:
         return self.cfg.context_dim
 
-    def inference_modules(self):
+    def inference_modules(self) -> dict[str, torch.nn.Module]:
         return {'psi': self.psi, 'decoder': self.decoder}
 
-    def training_modules(self):
+    def training_modules(self) -> dict[str, torch.nn.Module]:
         return {'psi_target': self.psi_target, 'T': self.T, 'R': self.R}
 
-    def optimizers(self):
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return {'model_opt': self.model_opt, 'decoder_opt': self.decoder_opt}
 
-    def encoder_parameters(self):
+    def encoder_parameters(self) -> list[torch.nn.Parameter]:
         return list(self.psi.parameters())
 
-    def encode(self, rows, mask, param):
+    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         return self.psi(rows, mask)
 
-    def encode_pair(self, batch, grad):
+    def encode_pair(self, batch, grad) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.set_grad_enabled(grad):   # one pass over the k + 1 rows of both windows
             codes = self.psi.codes(batch.chain_rows)
         return self.psi.window_pair(codes, batch.chain_mask, grad)
 
-    def encode_target(self, rows, mask, param):
+    def encode_target(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         with torch.no_grad():
             return self.psi_target(rows, mask)
 
-    def update_targets(self, tau):
+    def update_targets(self, tau) -> None:
         soft_update(self.psi, self.psi_target, tau)
 
-    def decode(self, latent):
+    def decode(self, latent) -> torch.Tensor:
         return self.decoder(latent)
 
     # -- Equation 2 ------------------------------------------------------------
@@ -103,13 +123,13 @@ class ZeusMethod(ContextMethod):
         target = self.context_target(z, a, c.detach(), c2.detach())
         return F.mse_loss(safe_norm(c - c2), target)
 
-    def model_loss(self, b, z, perm=None):
+    def model_loss(self, b, z, perm=None) -> ModelLoss:
         """Equation 2: alpha_psi * context loss + dynamics + reward; trains psi, T, R."""
         with torch.no_grad():
             zn = self.phi(b.next_obs)      # stop-gradient dynamics target
         c = self.psi(b.ctx_rows, b.ctx_mask)
         mu, log_std = self.T(z, b.action, c)
-        dyn = gaussian_nll(mu, log_std, zn) if self.cfg.dynamics_loss == 'nll' \
+        dyn = gaussian_nll(mu, log_std, zn) if self.settings.dynamics_loss == 'nll' \
             else F.mse_loss(mu, zn)
         rew = F.mse_loss(self.R(z, b.action, c), b.reward)
         metrics = {'dynamics_loss': dyn.detach(), 'reward_loss': rew.detach()}
@@ -126,7 +146,7 @@ class ZeusMethod(ContextMethod):
         """MSE of the decoder on the DETACHED latent against the normalised parameter."""
         return F.mse_loss(self.decoder(c.detach()), self.param.normalise(param))
 
-    def update(self, batch, z, step):
+    def update(self, batch, z, step) -> dict[str, torch.Tensor]:  # noqa: ARG002 (ContextMethod's signature)
         loss, c, metrics = self.model_loss(batch, z)
         self.model_opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -145,7 +165,7 @@ class ZeusNoContextLoss(ZeusMethod):
     name = 'zeus-no-context-loss'
     config_defaults = {'alpha_psi': 0.0}
 
-    def model_loss(self, b, z, perm=None):
+    def model_loss(self, b, z, perm=None) -> ModelLoss:
         if self.cfg.alpha_psi != 0:
             raise ValueError('zeus-no-context-loss trains with alpha_psi = 0')
         return super().model_loss(b, z, perm)

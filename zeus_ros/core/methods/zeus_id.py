@@ -34,25 +34,39 @@ at the same (x, a), under no_grad. The decoder reads the DETACHED latent.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.common import (EncoderMethod, gaussian_nll, safe_norm,
-                                          transition_features, w2_diag_gaussians)
+from zeus_ros.core.methods.common import (EncoderMethod, EncoderSettings, gaussian_nll,
+                                          ModelLoss, safe_norm, transition_features,
+                                          w2_diag_gaussians)
 from zeus_ros.core.networks import GaussianModel, RewardModel
+from zeus_ros.core.settings import setting
 
-__all__ = ['ZeusIdMethod', 'transition_features']
+__all__ = ['ZeusIdMethod', 'ZeusIdSettings', 'transition_features']
+
+
+@dataclass(frozen=True)
+class ZeusIdSettings(EncoderSettings):
+    """The learned-encoder settings plus zeus-id's normalised task metric."""
+
+    metric_normalise: bool = setting(
+        False, 'zeus-id: divide the task metric and latent distances by their batch means.')
 
 
 class ZeusIdMethod(EncoderMethod):
     """Long-window, delta-input context shaped by raw-dynamics models and a normalised metric."""
 
     name = 'zeus-id'
+    settings_class = ZeusIdSettings
+    metric_names = ('dynamics_loss', 'reward_loss', 'context_loss', 'decoder_loss')
     config_defaults = {'context_length': 25, 'context_input': 'delta',
                        'context_critic_grad': False, 'metric_normalise': True,
                        'context_hidden': 64, 'id_weight': 1.0}
 
-    def build_models(self):
+    def build_models(self) -> dict[str, torch.nn.Module]:
         cfg, o, a = self.cfg, self.dims.obs_dim, self.dims.action_dim
         # T and R read the standardised s (the first obs_dim features of a row).
         return {'T': GaussianModel(o, a, cfg.context_dim, cfg.dynamics_hidden,
@@ -70,12 +84,12 @@ class ZeusIdMethod(EncoderMethod):
             mu2, ls2 = T(x, a, c2d)
             d = (R(x, a, c1d) - R(x, a, c2d)).abs() + w2_diag_gaussians(mu1, ls1, mu2, ls2)
         dist = safe_norm(c - c2)
-        if self.cfg.metric_normalise:
+        if self.settings.metric_normalise:
             d = d / (d.mean() + 1e-6)
             dist = dist / (dist.mean().detach() + 1e-6)
         return F.mse_loss(dist, d)
 
-    def model_loss(self, b, perm=None):
+    def model_loss(self, b, perm=None) -> ModelLoss:
         """NLL of standardised s' - s, MSE of r, alpha_psi * context loss; trains psi, T, R."""
         x, delta = self.standardised_step(b)
         c = self.psi(b.ctx_rows, b.ctx_mask)

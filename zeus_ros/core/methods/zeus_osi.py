@@ -1,6 +1,6 @@
 """`zeus-osi`: zeus-id with UP-OSI's read-out of the parameter (this project, beyond the paper).
 
-Measured on cheetah-run-v0 (`repro/results/cross_reader.md`, three seeds of
+Measured on cheetah-run-v0 (`research/results/cross_reader.md`, three seeds of
 each): the up-osi baseline's OSI network reads the held-out torso lengths
 from zeus-id's OWN episodes at R^2 0.88-0.96, while zeus-id's decoder reads
 them at 0.81-0.88. zeus-id's windows carry the length; its read-out loses
@@ -20,9 +20,15 @@ method with the decoder read-out; ``--set context_length=5`` OSI's window.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch.nn.functional as F
 
+from zeus_ros.core.methods.common import ModelLoss
 from zeus_ros.core.methods.zeus_id import ZeusIdMethod
+
+if TYPE_CHECKING:
+    import torch
 
 
 class ZeusOsiMethod(ZeusIdMethod):
@@ -32,7 +38,7 @@ class ZeusOsiMethod(ZeusIdMethod):
     has_decoder = False
 
     def __init__(self, cfg, dims, param, training=True):
-        if cfg.id_weight <= 0:
+        if cfg.method_settings.id_weight <= 0:
             raise ValueError('zeus-osi reads its estimate from the latent: it needs '
                              'id_weight > 0 (the regression that makes those coordinates '
                              'the parameter)')
@@ -41,12 +47,15 @@ class ZeusOsiMethod(ZeusIdMethod):
                              'plus at least one free coordinate)')
         super().__init__(cfg, dims, param, training)
 
-    def decode(self, latent):
+    def decode(self, latent) -> torch.Tensor:
         return latent[..., :self.param.param_dim]
 
-    def model_loss(self, b, perm=None):
+    def model_loss(self, b, perm=None) -> ModelLoss:
         """zeus-id's loss plus id_weight * MSE(first P latent coordinates, parameter)."""
         loss, c, metrics = super().model_loss(b, perm)
         id_loss = F.mse_loss(self.decode(c), self.param.normalise(b.param))
-        metrics['decoder_loss'] = id_loss.detach()   # logged in zeus-id's column
-        return loss + self.cfg.id_weight * id_loss, c, metrics
+        # The read-out's regression loss, under the name zeus-id's decoder logs it: the two
+        # read-outs compare in one column (read by
+        # research/analysis/target_velocity_identifiability.py).
+        metrics['decoder_loss'] = id_loss.detach()
+        return loss + self.settings.id_weight * id_loss, c, metrics

@@ -1,0 +1,205 @@
+"""context_node: keeps the last k transitions and publishes the latent context.
+
+Subscribes /joint_states and /zeus/step, rebuilds each transition (s, a, r, s')
+by stamp with the training window's semantics, runs psi, and publishes
+/zeus/context once per state, stamped with the state it describes, with the
+physical parameter decoded from the latent.
+
+It does not subscribe /joint_commands: StepInfo carries the action MuJoCo
+actually applied (after clipping, or zeros after a rejected or late command),
+which a command on the wire cannot tell, and one subscription fewer is one
+executor wake-up fewer per control step.
+
+Bad input does not stop it: a joint state or StepInfo that does not fit the
+weights is ignored, a restarted sim (its clock starts again) is followed with
+an empty window (`zeus_ros.ros.pairing.StampFollower`), and a non-finite latent
+from psi is replaced by the empty window's zero latent; each is counted,
+warned (throttled) and reported in /diagnostics, whose level reflects the
+last 10 s. A sim of another family (StepInfo.family) is refused: the node
+exits with code 1 and one line (checked again after the sim clock restarts).
+"""
+
+# ruff: noqa: E402
+# (The stop guard must come before the heavy imports: torch loads for seconds.)
+from __future__ import annotations
+
+from zeus_ros.ros import stop_guard
+
+stop_guard.install('context_node', __name__)
+
+import math
+import sys
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from zeus_msgs.msg import Context, StepInfo
+
+from zeus_ros.ros.protocol import RecentCounts
+from zeus_ros.deploy.checkpoint import CheckpointError
+from zeus_ros.deploy.inference import DeployedModel
+from zeus_ros.core.window import ContextWindow
+from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
+                                     load_weights_parameter)
+from zeus_ros.ros.loop_spin import create_loop_subscription
+from zeus_ros.ros.pairing import BadMessage, forget_received, OUTLIER, TransitionAssembler
+from zeus_ros.ros.util import (diagnostic_array, LOOP_QOS, RateMeter, run_node,
+                               set_stamp, stamp_ns, ThrottledWarnings)
+
+# Largest magnitude a float32 field (Context.param_estimates) holds.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+class ContextGuard:
+    """psi's latent and the decoded estimates (one per parameter), never non-finite.
+
+    A non-finite latent is replaced by the empty window's: the zero latent (as
+    defined in zeus_ros.core.window, whatever psi computes of an empty mask)
+    and its estimates. A non-finite estimate of a finite latent is replaced by
+    that same prior estimate. Where the prior is NaN, the weights carry no
+    decoder, and NaN is what Context.param_estimates means by 'no estimate'.
+    """
+
+    def __init__(self, model: DeployedModel):
+        self.model = model
+        self.zero_latent = np.zeros(model.context_dim, dtype=np.float32)
+        prior = self._estimates(self.zero_latent)
+        self.prior_estimates = np.where(np.isinf(prior), math.nan, prior)
+        self.non_finite_latents = self.non_finite_estimates = 0
+
+    def _estimates(self, latent: np.ndarray) -> np.ndarray:
+        values = np.asarray(self.model.decode_values(latent), dtype=np.float64)
+        # A float32 field would turn a larger float into inf (or refuse it).
+        return np.where(np.abs(values) <= FLOAT32_MAX, values,
+                        np.where(np.isnan(values), math.nan, math.inf))
+
+    def context(self, rows: np.ndarray, mask: np.ndarray,
+                true_param=None) -> tuple[np.ndarray, np.ndarray, str]:
+        """(latent, estimates, problem): problem is '' when nothing was replaced."""
+        latent = self.model.context(rows, mask, true_param)
+        if not np.all(np.isfinite(latent)):
+            self.non_finite_latents += 1
+            return self.zero_latent, self.prior_estimates, (
+                'psi gave a non-finite latent; published the zero latent instead')
+        estimates = self._estimates(latent)
+        bad = np.isinf(estimates) | (np.isnan(estimates) & ~np.isnan(self.prior_estimates))
+        if bad.any():
+            self.non_finite_estimates += 1
+            fixed = np.where(bad, self.prior_estimates, estimates)
+            return latent, fixed, (
+                f'the decoder gave {estimates.tolist()}; published the prior estimate '
+                f'{self.prior_estimates[bad].tolist()} in its place')
+        return latent, estimates, ''
+
+
+class ContextNode(Node):
+    """Thin ROS shell around `TransitionAssembler` and the checkpoint's psi."""
+
+    def __init__(self):
+        super().__init__('context_node')
+        self.model = load_weights_parameter(self)
+        self.window = ContextWindow(self.model.k, self.model.obs_dim, self.model.action_dim)
+        self.assembler = TransitionAssembler(self.window,
+                                             self.model.meta.obs_layout.layout(),
+                                             on_clock=self.clock_event)
+        self.guard = ContextGuard(self.model)
+        self.param_names = list(self.model.param_names)
+        # The sim's TRUE values (StepInfo.param_values): read only by privileged
+        # weights (oracle), which are defined as knowing them.
+        self.true_param = np.full(len(self.param_names), math.nan)
+        self.family_checked = False
+        self.bad_messages = {'joint_state': 0, 'step_info': 0}
+        self.received_at: dict[int, float] = {}
+        self.context_rate = RateMeter()    # latency: first message of a stamp -> context out
+        self.recent = RecentCounts()
+        self.warnings = ThrottledWarnings(self.get_logger())
+
+        self.context_pub = self.create_publisher(Context, '/zeus/context', LOOP_QOS)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        create_loop_subscription(self, JointState, '/joint_states', self.joint_state_callback,
+                                 LOOP_QOS)
+        create_loop_subscription(self, StepInfo, '/zeus/step', self.step_callback, LOOP_QOS)
+        self.create_timer(1.0, self.diagnostics_callback)
+
+    def joint_state_callback(self, msg: JointState) -> None:
+        try:
+            record = self.assembler.add_joint_state(stamp_ns(msg.header), msg.name,
+                                                    msg.position, msg.velocity)
+        except BadMessage as error:
+            # A stray publisher must not stop the controller: the sim's own
+            # states are checked by the family of its StepInfo.
+            self.bad_messages['joint_state'] += 1
+            self.warnings.warn('joint_state', f'ignored a joint state that does not fit the '
+                                              f'{self.model.family} weights: {error}')
+            return
+        self._note(msg.header)
+        self._publish_for(record)
+
+    def step_callback(self, msg: StepInfo) -> None:
+        if not self.family_checked:
+            check_family(msg.family, self.model)
+            self.family_checked = True
+        if len(msg.param_values) == len(self.param_names):
+            self.true_param = np.asarray(msg.param_values, dtype=np.float64)
+        try:
+            record = self.assembler.add_step_info(stamp_ns(msg.header), msg.episode, msg.step,
+                                                  msg.reward, msg.applied_action,
+                                                  msg.truncated)
+        except BadMessage as error:
+            self.bad_messages['step_info'] += 1
+            self.warnings.warn('step_info', f'ignored a StepInfo: {error}')
+            return
+        self._note(msg.header)
+        self._publish_for(record)
+
+    def clock_event(self, event: str, stamp: int, previous: int | None) -> None:
+        """Warn of a restart, jump or ignored stamp of the sim clock (the assembler calls it)."""
+        self.warnings.warn(event, describe_clock_event(event, stamp, previous))
+        if event != OUTLIER:
+            # Another clock may be another sim: check its family again.
+            self.family_checked = False
+            self.received_at = {s: t for s, t in self.received_at.items() if s == stamp}
+
+    def _note(self, header) -> None:
+        self.received_at.setdefault(stamp_ns(header), time.monotonic())
+
+    def _publish_for(self, record) -> None:
+        if record is None:
+            return
+        true_param = self.true_param if self.model.needs_true_param else None
+        latent, estimates, problem = self.guard.context(*self.window.arrays(), true_param)
+        if problem:
+            self.warnings.warn('non_finite', problem)
+        msg = Context(latent=latent.tolist(), window_fill=self.window.fill,
+                      param_names=self.param_names, param_estimates=estimates.tolist(),
+                      reward=float(record.reward))
+        set_stamp(msg.header, record.stamp_ns)
+        self.context_pub.publish(msg)
+        first_seen = self.received_at.get(record.stamp_ns, time.monotonic())
+        self.context_rate.record(time.monotonic() - first_seen)
+        forget_received(self.received_at, record.stamp_ns)
+
+    def diagnostics_callback(self) -> None:
+        counts = dict(dropped=self.assembler.dropped, gaps=self.assembler.gaps,
+                      clock_restarts=self.assembler.restarts,
+                      stamp_outliers=self.assembler.outliers,
+                      bad_joint_states=self.bad_messages['joint_state'],
+                      bad_step_infos=self.bad_messages['step_info'],
+                      non_finite_latents=self.guard.non_finite_latents,
+                      non_finite_estimates=self.guard.non_finite_estimates)
+        values = dict(self.context_rate.report(), window_fill=self.window.fill,
+                      window_k=self.window.k, **counts)
+        # The level says what happened lately, the values count since start.
+        problem = self.recent.problem(time.monotonic(), counts)
+        self.diagnostics_pub.publish(diagnostic_array(self, 'context', self.model.family,
+                                                      values, problem))
+
+
+def main(args=None) -> int:
+    return run_node(ContextNode, args, fatal=(CheckpointError, GraphMismatch))
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -2,9 +2,10 @@
 
 `ParamEnv` runs a dm_control task (walker walk, cheetah run, finger spin) on a
 model built for one value of the family's parameter, steps it at the task's
-control rate for 1000-step episodes, and can swap the parameter mid-episode:
-the model is rebuilt and the whole simulator state (positions, velocities,
-actuator state, warm start, time) carried over, so motion continues. A swap
+control rate for episodes of the family's horizon (`FamilySpec.episode_steps`,
+1000 steps), and can swap the parameter mid-episode: the model is rebuilt
+and the whole simulator state (positions, velocities, actuator state, warm
+start, time) carried over, so motion continues. A swap
 also comes in two halves, for a caller that must not wait for MuJoCo's
 compiler (the sim node): `prepare_param` on any thread, `apply_prepared` at a
 step boundary (the same trajectory as `set_param`).
@@ -36,8 +37,6 @@ from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_fam
 from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout, StepResult
 
 __all__ = ['check_action', 'ObservationLayout', 'ParamEnv', 'StepResult', 'layout_from_model']
-
-EPISODE_STEPS = 1000
 
 # Control period of each domain, as dm_control's walk/run/spin tasks use it.
 CONTROL_TIMESTEP = {'walker': 0.025, 'cheetah': 0.01, 'finger': 0.02, 'cartpole': 0.01,
@@ -249,9 +248,10 @@ class ParamEnv:
     """A dm_control task whose physical parameter can change at a step boundary."""
 
     def __init__(self, family: str, value: float | None = None, seed: int | None = 0,
-                 episode_steps: int = EPISODE_STEPS, reward_in_obs: bool = False):
+                 episode_steps: int | None = None, reward_in_obs: bool = False):
+        """`episode_steps` None: the family's horizon (`FamilySpec.episode_steps`)."""
         self.spec = get_family(family)
-        self.episode_steps = episode_steps
+        self.episode_steps = self.spec.episode_steps if episode_steps is None else episode_steps
         self.control_timestep = CONTROL_TIMESTEP[self.spec.domain]
         self._random = np.random.RandomState(seed)
         self._value = float(self.spec.default if value is None else value)

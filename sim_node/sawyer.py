@@ -59,7 +59,7 @@ PARAM_NAMES = SPEC.param_names       # ('goal_x', 'goal_y'): Table 7's frame, m
 METAWORLD_VERSION = '3.1.1'
 SCENE_FILE = 'assets/sawyer_xyz/sawyer_peg_insertion_side.xml'
 
-EPISODE_STEPS = 40                  # Table 9's horizon
+EPISODE_STEPS = SPEC.episode_steps  # Table 9's horizon, 40
 CONTROL_TIMESTEP = 0.05             # s; 20 MuJoCo steps of 2.5 ms
 MAX_HAND_STEP = 0.02                # m per control step and axis at |action| = 1
 MAX_LEAD = 0.05                     # m the commanded hand position may run ahead of the hand

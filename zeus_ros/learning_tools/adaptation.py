@@ -317,7 +317,7 @@ def swap_responses(model, spec, cfg: ReportConfig) -> list[SwapResponse]:
         a, b = _farthest_pair(spec.extrapolation)
         pairs += [(a, b), (b, a)]
     out = []
-    steps = min(cfg.swap_steps, getattr(spec, 'episode_steps', cfg.swap_steps))
+    steps = min(cfg.swap_steps, spec.episode_steps)
     swap_step = min(cfg.swap_step, steps // 2)
     swap_cfg = ReportConfig(1, cfg.seed, steps, swap_step, steps)
     for a, b in pairs:
@@ -400,8 +400,8 @@ def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
     if cfg.window:   # the encoders pool over a masked window of any length
         model.k = cfg.window
     spec = get_sim_family(model.family)
-    if hasattr(spec, 'episode_steps'):   # a family with its own horizon (Sawyer: 40 steps)
-        cfg = replace(cfg, max_steps=min(cfg.max_steps, spec.episode_steps))
+    # No episode longer than the family's own (Sawyer: 40 steps, the others 1000).
+    cfg = replace(cfg, max_steps=min(cfg.max_steps, spec.episode_steps))
     values = sorted({v for s in ('train', *HELD_OUT) for v in spec.split(s)})
     velocity = None
     if spec.param_names == ('target_velocity',):

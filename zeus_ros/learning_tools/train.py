@@ -73,8 +73,7 @@ def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
                   **overrides) -> ZeusConfig:
     """Build the preset with the family's facts (Table 11's alpha_psi, reward-varying)."""
     spec = get_sim_family(family)
-    if hasattr(spec, 'episode_steps'):   # a family with its own horizon (Sawyer: Table 9's 40)
-        overrides = {'episode_steps': spec.episode_steps, **overrides}
+    overrides = {'episode_steps': spec.episode_steps, **overrides}   # Sawyer: Table 9's 40
     return make_config(family, profile, method, family_alpha_psi=spec.alpha_psi,
                        reward_varying=spec.reward_varies_only, **overrides)
 

@@ -5,10 +5,11 @@ model built for one value of the family's parameter, steps it at the task's
 control rate for episodes of the family's horizon (`FamilySpec.episode_steps`,
 1000 steps), and can swap the parameter mid-episode: the model is rebuilt
 and the whole simulator state (positions, velocities, actuator state, warm
-start, time) carried over, so motion continues. A swap
-also comes in two halves, for a caller that must not wait for MuJoCo's
-compiler (the sim node): `prepare_param` on any thread, `apply_prepared` at a
-step boundary (the same trajectory as `set_param`).
+start, time) carried over, so motion continues. Its parameter is a value
+tuple of one, as every family's (`sim_node.family_env.FamilyEnv`): `set_values`
+puts a tuple into force. A swap also comes in two halves, for a caller that
+must not wait for MuJoCo's compiler (the sim node): `prepare_values` on any
+thread, `apply_prepared` at a step boundary (the same trajectory as `set_values`).
 
 The observation is a function of joint positions and velocities only (see
 `ObservationLayout`), so the sim node's `sensor_msgs/JointState` carries
@@ -168,7 +169,7 @@ def _low_res_assets(domain: str) -> dict:
 class _ModelWriter:
     """Writes a newly compiled model into a live one of the same structure, in place.
 
-    A swap could put a new Physics in force (what `ParamEnv.set_param` does),
+    A swap could put a new Physics in force (what `ParamEnv.set_values` does),
     but constructing one costs milliseconds of Python (dm_control's named
     indexing) and leaves cyclic garbage behind. Every family's edit changes
     values only (friction, sizes, positions, masses and what the compiler
@@ -233,15 +234,10 @@ def layout_from_model(model: mujoco.MjModel) -> ObservationLayout:
 
 @dataclass(frozen=True)
 class PreparedParam:
-    """A value and the model compiled for it, not yet in force (`ParamEnv.prepare_param`)."""
+    """Values and the model compiled for them, not yet in force (`ParamEnv.prepare_values`)."""
 
-    value: float
+    values: tuple[float]   # the family's value tuple (one value), as the swaps carry it
     model: mujoco.MjModel
-
-    @property
-    def values(self) -> tuple[float, ...]:
-        """The value as a family's value tuple (what the sim node's swaps carry)."""
-        return (self.value,)
 
 
 class ParamEnv:
@@ -276,11 +272,6 @@ class ParamEnv:
         return self.spec.name
 
     @property
-    def param_value(self) -> float:
-        """The parameter value in force."""
-        return self._value
-
-    @property
     def param_names(self) -> tuple[str, ...]:
         """The live parameter's name, as a tuple (what the sim node reads for any family)."""
         return self.spec.param_names
@@ -312,7 +303,7 @@ class ParamEnv:
 
     @property
     def physics(self) -> dm_mujoco.Physics:
-        """The dm_control Physics in force (`set_param` makes a new one, `apply_prepared` not)."""
+        """The dm_control Physics in force (`set_values` makes a new one, `apply_prepared` not)."""
         return self._physics
 
     def joint_positions(self) -> np.ndarray:
@@ -362,10 +353,9 @@ class ParamEnv:
         truncated = self.step_count >= self.episode_steps
         return StepResult(observation, reward, False, truncated, applied_action=clean)
 
-    def set_param(self, value: float) -> None:
-        """Put a new parameter value into force, keeping the simulator state."""
-        value = float(value)
-        self._require_valid(value)
+    def set_values(self, values: tuple[float, ...]) -> None:
+        """Put new parameter values into force, keeping the simulator state (a new Physics)."""
+        value = self._one_value(values)
         physics = build_physics(self.spec, value)
         _copy_state(self._physics.data, physics)
         self._physics = physics
@@ -373,44 +363,32 @@ class ParamEnv:
         self._task = _make_task(self.spec, value, self._random)
         self._value = value
 
-    def prepare_param(self, value: float) -> PreparedParam:
-        """Compile the model of `value` without touching this env (safe on another thread).
+    def prepare_values(self, values: tuple[float, ...]) -> PreparedParam:
+        """Compile the model of `values` without touching this env (safe on another thread).
 
         The slow half of a live swap (2-5 ms, see `build_model`); the sim node
         runs it on a worker thread, so that its control loop never waits for it.
         """
-        value = float(value)
-        self._require_valid(value)
+        value = self._one_value(values)
         model = build_model(self.spec, value)
         if structure_of(model) != self._structure:   # the edit changed more than values
             raise ValueError(f'{self.spec.param_name}={value:g} changes the structure of the '
                              f'{self.spec.domain} model: it cannot be swapped in place')
-        return PreparedParam(value, model)
-
-    def set_values(self, values: tuple[float, ...]) -> None:
-        """`set_param` for a value tuple (what the evaluator calls for any family)."""
-        if len(values) != 1:
-            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
-        self.set_param(values[0])
-
-    def prepare_values(self, values: tuple[float, ...]) -> PreparedParam:
-        """`prepare_param` for a value tuple (the sim node's interface to every family)."""
-        if len(values) != 1:
-            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
-        return self.prepare_param(values[0])
+        return PreparedParam((value,), model)
 
     def apply_prepared(self, prepared: PreparedParam) -> None:
-        """Put a prepared value into force at a step boundary, keeping the simulator state.
+        """Put prepared values into force at a step boundary, keeping the simulator state.
 
         The fast half (~0.2 ms): the new model is written into the live one
         in place and the derived quantities recomputed; the physics, its data
-        and the state stay. The trajectory is bit-identical to `set_param`'s
+        and the state stay. The trajectory is bit-identical to `set_values`'
         (test_swap_physics.py checks every family).
         """
+        (value,) = prepared.values
         self._writer.write(prepared.model)
         self._physics.forward()
-        self._task = _make_task(self.spec, prepared.value, self._random)
-        self._value = prepared.value
+        self._task = _make_task(self.spec, value, self._random)
+        self._value = value
 
     def copy_state_from(self, other: 'ParamEnv') -> None:
         """Take another env's simulator state and step count (same family, any value).
@@ -423,6 +401,14 @@ class ParamEnv:
         _copy_state(other.physics.data, self._physics)
         self.step_count = other.step_count
         self._last_reward = other._last_reward
+
+    def _one_value(self, values: tuple[float, ...]) -> float:
+        """Return the one value of a value tuple, checked against the live range."""
+        values = tuple(values)
+        if len(values) != 1:
+            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
+        self._require_valid(values[0])
+        return float(values[0])
 
     def _require_valid(self, value: float) -> None:
         reason = self.spec.check_value(value)

@@ -20,7 +20,7 @@ horizon `episode_steps`), and code that takes either reads it through that.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol, runtime_checkable
+from typing import Callable, Mapping, Protocol, runtime_checkable
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
@@ -510,6 +510,23 @@ def domain_model(domain: str) -> tuple[str, dict]:
                'cartpole': cartpole.get_model_and_assets,
                'reacher': reacher.get_model_and_assets}
     return loaders[domain]()
+
+
+def values_with(spec: SimFamily, values, changes: Mapping[str, float]) -> tuple[float, ...]:
+    """Return `values` (in `spec.param_names` order) with `changes` (name: value) made.
+
+    The one way from names to a value tuple: a ROS parameter set names the
+    parameters it changes, an env takes the whole tuple (`set_values`,
+    `prepare_values`). Each change is checked as a live set is
+    (`check_param`: a known name, a number in its live range); ValueError says why not.
+    """
+    for name, value in changes.items():
+        reason = spec.check_param(name, value)
+        if reason is not None:
+            raise ValueError(reason)
+    merged = dict(zip(spec.param_names, values, strict=True))
+    merged.update({name: float(value) for name, value in changes.items()})
+    return tuple(merged[name] for name in spec.param_names)
 
 
 def as_values(value) -> tuple[float, ...]:

@@ -59,6 +59,7 @@ from typing import Callable
 import numpy as np
 
 from sim_node.env import ParamEnv, PreparedParam
+from sim_node.families import values_with
 from sim_node.swaps import Values
 
 MODES = ('lockstep', 'realtime')
@@ -162,13 +163,11 @@ class SimStepper:
         return waiting[-1] if waiting else tuple(self.env.param_values)
 
     def with_changes(self, changes: dict[str, float]) -> Values:
-        """Return the wanted values with `changes` (name: value) made: what a set asks for."""
-        wanted = dict(zip(self.env.param_names, self.wanted_values, strict=True))
-        unknown = set(changes) - set(wanted)
-        if unknown:
-            raise KeyError(f'not a live parameter: {", ".join(sorted(unknown))}')
-        wanted.update({name: float(value) for name, value in changes.items()})
-        return tuple(wanted[name] for name in self.env.param_names)
+        """Return the wanted values with `changes` (name: value) made: what a set asks for.
+
+        ValueError for a name the family lacks or a value out of its live range.
+        """
+        return values_with(self.env.spec, self.wanted_values, changes)
 
     def swap_refusal(self, values: Values) -> str | None:
         """Why `values` cannot be queued now (the queue is full), or None."""

@@ -1,7 +1,7 @@
 """Live parameter swaps built off the control loop: a FIFO of values and a worker thread.
 
 A swap has a slow half, compiling the model of the new value from the
-family's edited MJCF (`ParamEnv.prepare_param`: 2-5 ms, 1-2 ms of it Python),
+family's edited MJCF (`ParamEnv.prepare_values`: 2-5 ms, 1-2 ms of it Python),
 and a fast half, writing that model into the live one in place at a step
 boundary (`ParamEnv.apply_prepared`: ~0.2 ms). The slow half used to rebuild
 the whole Physics on the loop thread (~70 ms, the skybox texture included), and

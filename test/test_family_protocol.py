@@ -1,10 +1,11 @@
 """Every family answers one typed interface: its spec `SimFamily`, its env `FamilyEnv`."""
 
 import inspect
+import math
 
 import pytest
 from sim_node.families import (EPISODE_STEPS, FAMILIES, FamilySpec, GOAL_FAMILIES,
-                               GoalFamilySpec, SIM_FAMILIES, SimFamily)
+                               GoalFamilySpec, SIM_FAMILIES, SimFamily, values_with)
 
 
 def protocol_members(protocol) -> set[str]:
@@ -38,3 +39,17 @@ def test_something_that_is_not_a_family_is_no_sim_family():
     class HalfSpec:   # a spec without a horizon or splits
         name, domain, param_names = 'x', 'y', ('z',)
     assert not isinstance(HalfSpec(), SimFamily)
+
+
+def test_values_with_makes_a_value_tuple_from_names_and_refuses_what_a_set_would():
+    spec = SIM_FAMILIES['sawyer-peg-v0']
+    assert values_with(spec, (0.5, 0.0), {'goal_y': 0.07}) == (0.5, 0.07)
+    assert values_with(spec, (0.5, 0.0), {'goal_y': 0.07, 'goal_x': 0.6}) == (0.6, 0.07)
+    assert values_with(spec, (0.5, 0.0), {}) == (0.5, 0.0)
+    for changes in ({'goal_z': 0.1}, {'goal_x': 0.9}, {'goal_x': math.nan}, {'goal_y': 'far'}):
+        with pytest.raises(ValueError):
+            values_with(spec, (0.5, 0.0), changes)
+    walker = SIM_FAMILIES['walker-walk-v0']
+    assert values_with(walker, (0.7,), {'friction': 2}) == (2.0,)
+    with pytest.raises(ValueError, match='unknown parameter'):
+        values_with(walker, (0.7,), {'foot_length': 0.1})

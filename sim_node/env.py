@@ -35,6 +35,7 @@ import numpy as np
 
 from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_family,
                                GOAL_FAMILIES)
+from sim_node.family_env import FamilyEnv
 from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout, StepResult
 
 __all__ = ['check_action', 'ObservationLayout', 'ParamEnv', 'StepResult', 'layout_from_model']
@@ -433,14 +434,14 @@ def _copy_state(source, physics) -> None:
 
 
 def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | None = 0,
-             **options):
+             **options) -> FamilyEnv:
     """Return the env of any family the sim node runs: a `ParamEnv`, or Sawyer-Peg-v0's own.
 
-    Both answer what the sim node and its stepper use: reset, step,
-    param_names / param_values, prepare_values / apply_prepared (a live swap),
-    joint_names / joint_positions / joint_velocities (the JointState),
-    actuator_names, control_timestep, step_count. `options`: `episode_steps`,
-    `reward_in_obs` (Sawyer-Peg-v0 always observes the reward).
+    Both are a `FamilyEnv` (sim_node.family_env): what the trainer, the
+    evaluator, the adaptation report and the sim node use of an env.
+    `values` None: the family's defaults. `options`: `episode_steps` (None
+    or left out: the family's horizon), `reward_in_obs` (Sawyer-Peg-v0 always
+    observes the reward).
     """
     spec = get_sim_family(family)
     if spec.name in GOAL_FAMILIES:

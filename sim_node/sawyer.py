@@ -314,13 +314,14 @@ class SawyerPegEnv:
     """
 
     def __init__(self, values: Goal | None = None, seed: int | None = 0,
-                 episode_steps: int = EPISODE_STEPS):
+                 episode_steps: int | None = None):
+        """`values` None: the default goal; `episode_steps` None: EPISODE_STEPS."""
         self.spec = SPEC
         self._model = fresh_model()
         self._data = mujoco.MjData(self._model)
         self._ids = _Ids.of(self._model)
         self._n_substeps = int(round(CONTROL_TIMESTEP / self._model.opt.timestep))
-        self.episode_steps = episode_steps
+        self.episode_steps = EPISODE_STEPS if episode_steps is None else episode_steps
         self.control_timestep = CONTROL_TIMESTEP
         self.layout = LAYOUT
         self.actuator_names = ACTION_NAMES

@@ -2,12 +2,14 @@
 
 `ParamEnv` runs a dm_control task (walker walk, cheetah run, finger spin) on a
 model built for one value of the family's parameter, steps it at the task's
-control rate for 1000-step episodes, and can swap the parameter mid-episode:
-the model is rebuilt and the whole simulator state (positions, velocities,
-actuator state, warm start, time) carried over, so motion continues. A swap
-also comes in two halves, for a caller that must not wait for MuJoCo's
-compiler (the sim node): `prepare_param` on any thread, `apply_prepared` at a
-step boundary (the same trajectory as `set_param`).
+control rate for episodes of the family's horizon (`FamilySpec.episode_steps`,
+1000 steps), and can swap the parameter mid-episode: the model is rebuilt
+and the whole simulator state (positions, velocities, actuator state, warm
+start, time) carried over, so motion continues. Its parameter is a value
+tuple of one, as every family's (`sim_node.family_env.FamilyEnv`): `set_values`
+puts a tuple into force. A swap also comes in two halves, for a caller that
+must not wait for MuJoCo's compiler (the sim node): `prepare_values` on any
+thread, `apply_prepared` at a step boundary (the same trajectory as `set_values`).
 
 The observation is a function of joint positions and velocities only (see
 `ObservationLayout`), so the sim node's `sensor_msgs/JointState` carries
@@ -33,11 +35,10 @@ import numpy as np
 
 from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_family,
                                GOAL_FAMILIES)
+from sim_node.family_env import FamilyEnv
 from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout, StepResult
 
 __all__ = ['check_action', 'ObservationLayout', 'ParamEnv', 'StepResult', 'layout_from_model']
-
-EPISODE_STEPS = 1000
 
 # Control period of each domain, as dm_control's walk/run/spin tasks use it.
 CONTROL_TIMESTEP = {'walker': 0.025, 'cheetah': 0.01, 'finger': 0.02, 'cartpole': 0.01,
@@ -169,7 +170,7 @@ def _low_res_assets(domain: str) -> dict:
 class _ModelWriter:
     """Writes a newly compiled model into a live one of the same structure, in place.
 
-    A swap could put a new Physics in force (what `ParamEnv.set_param` does),
+    A swap could put a new Physics in force (what `ParamEnv.set_values` does),
     but constructing one costs milliseconds of Python (dm_control's named
     indexing) and leaves cyclic garbage behind. Every family's edit changes
     values only (friction, sizes, positions, masses and what the compiler
@@ -234,24 +235,20 @@ def layout_from_model(model: mujoco.MjModel) -> ObservationLayout:
 
 @dataclass(frozen=True)
 class PreparedParam:
-    """A value and the model compiled for it, not yet in force (`ParamEnv.prepare_param`)."""
+    """Values and the model compiled for them, not yet in force (`ParamEnv.prepare_values`)."""
 
-    value: float
+    values: tuple[float]   # the family's value tuple (one value), as the swaps carry it
     model: mujoco.MjModel
-
-    @property
-    def values(self) -> tuple[float, ...]:
-        """The value as a family's value tuple (what the sim node's swaps carry)."""
-        return (self.value,)
 
 
 class ParamEnv:
     """A dm_control task whose physical parameter can change at a step boundary."""
 
     def __init__(self, family: str, value: float | None = None, seed: int | None = 0,
-                 episode_steps: int = EPISODE_STEPS, reward_in_obs: bool = False):
+                 episode_steps: int | None = None, reward_in_obs: bool = False):
+        """`episode_steps` None: the family's horizon (`FamilySpec.episode_steps`)."""
         self.spec = get_family(family)
-        self.episode_steps = episode_steps
+        self.episode_steps = self.spec.episode_steps if episode_steps is None else episode_steps
         self.control_timestep = CONTROL_TIMESTEP[self.spec.domain]
         self._random = np.random.RandomState(seed)
         self._value = float(self.spec.default if value is None else value)
@@ -274,11 +271,6 @@ class ParamEnv:
     def family(self) -> str:
         """The family's name."""
         return self.spec.name
-
-    @property
-    def param_value(self) -> float:
-        """The parameter value in force."""
-        return self._value
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -312,7 +304,7 @@ class ParamEnv:
 
     @property
     def physics(self) -> dm_mujoco.Physics:
-        """The dm_control Physics in force (`set_param` makes a new one, `apply_prepared` not)."""
+        """The dm_control Physics in force (`set_values` makes a new one, `apply_prepared` not)."""
         return self._physics
 
     def joint_positions(self) -> np.ndarray:
@@ -362,10 +354,9 @@ class ParamEnv:
         truncated = self.step_count >= self.episode_steps
         return StepResult(observation, reward, False, truncated, applied_action=clean)
 
-    def set_param(self, value: float) -> None:
-        """Put a new parameter value into force, keeping the simulator state."""
-        value = float(value)
-        self._require_valid(value)
+    def set_values(self, values: tuple[float, ...]) -> None:
+        """Put new parameter values into force, keeping the simulator state (a new Physics)."""
+        value = self._one_value(values)
         physics = build_physics(self.spec, value)
         _copy_state(self._physics.data, physics)
         self._physics = physics
@@ -373,44 +364,32 @@ class ParamEnv:
         self._task = _make_task(self.spec, value, self._random)
         self._value = value
 
-    def prepare_param(self, value: float) -> PreparedParam:
-        """Compile the model of `value` without touching this env (safe on another thread).
+    def prepare_values(self, values: tuple[float, ...]) -> PreparedParam:
+        """Compile the model of `values` without touching this env (safe on another thread).
 
         The slow half of a live swap (2-5 ms, see `build_model`); the sim node
         runs it on a worker thread, so that its control loop never waits for it.
         """
-        value = float(value)
-        self._require_valid(value)
+        value = self._one_value(values)
         model = build_model(self.spec, value)
         if structure_of(model) != self._structure:   # the edit changed more than values
             raise ValueError(f'{self.spec.param_name}={value:g} changes the structure of the '
                              f'{self.spec.domain} model: it cannot be swapped in place')
-        return PreparedParam(value, model)
-
-    def set_values(self, values: tuple[float, ...]) -> None:
-        """`set_param` for a value tuple (what the evaluator calls for any family)."""
-        if len(values) != 1:
-            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
-        self.set_param(values[0])
-
-    def prepare_values(self, values: tuple[float, ...]) -> PreparedParam:
-        """`prepare_param` for a value tuple (the sim node's interface to every family)."""
-        if len(values) != 1:
-            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
-        return self.prepare_param(values[0])
+        return PreparedParam((value,), model)
 
     def apply_prepared(self, prepared: PreparedParam) -> None:
-        """Put a prepared value into force at a step boundary, keeping the simulator state.
+        """Put prepared values into force at a step boundary, keeping the simulator state.
 
         The fast half (~0.2 ms): the new model is written into the live one
         in place and the derived quantities recomputed; the physics, its data
-        and the state stay. The trajectory is bit-identical to `set_param`'s
+        and the state stay. The trajectory is bit-identical to `set_values`'
         (test_swap_physics.py checks every family).
         """
+        (value,) = prepared.values
         self._writer.write(prepared.model)
         self._physics.forward()
-        self._task = _make_task(self.spec, prepared.value, self._random)
-        self._value = prepared.value
+        self._task = _make_task(self.spec, value, self._random)
+        self._value = value
 
     def copy_state_from(self, other: 'ParamEnv') -> None:
         """Take another env's simulator state and step count (same family, any value).
@@ -423,6 +402,14 @@ class ParamEnv:
         _copy_state(other.physics.data, self._physics)
         self.step_count = other.step_count
         self._last_reward = other._last_reward
+
+    def _one_value(self, values: tuple[float, ...]) -> float:
+        """Return the one value of a value tuple, checked against the live range."""
+        values = tuple(values)
+        if len(values) != 1:
+            raise ValueError(f'{self.family} has one parameter, got {len(values)} values')
+        self._require_valid(values[0])
+        return float(values[0])
 
     def _require_valid(self, value: float) -> None:
         reason = self.spec.check_value(value)
@@ -447,14 +434,14 @@ def _copy_state(source, physics) -> None:
 
 
 def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | None = 0,
-             **options):
+             **options) -> FamilyEnv:
     """Return the env of any family the sim node runs: a `ParamEnv`, or Sawyer-Peg-v0's own.
 
-    Both answer what the sim node and its stepper use: reset, step,
-    param_names / param_values, prepare_values / apply_prepared (a live swap),
-    joint_names / joint_positions / joint_velocities (the JointState),
-    actuator_names, control_timestep, step_count. `options`: `episode_steps`,
-    `reward_in_obs` (Sawyer-Peg-v0 always observes the reward).
+    Both are a `FamilyEnv` (sim_node.family_env): what the trainer, the
+    evaluator, the adaptation report and the sim node use of an env.
+    `values` None: the family's defaults. `options`: `episode_steps` (None
+    or left out: the family's horizon), `reward_in_obs` (Sawyer-Peg-v0 always
+    observes the reward).
     """
     spec = get_sim_family(family)
     if spec.name in GOAL_FAMILIES:

@@ -12,19 +12,24 @@ Every family describes its live parameters the same way (`live_params`, a
 tuple of `LiveParam`), and the sim node reads only that: a family's values
 are a tuple in `param_names` order, through the sim node, the trainer, the
 controllers and the adaptation report (`get_sim_family`, `sim_node.env.make_env`).
+Both kinds of spec answer `SimFamily` (the parameters, the splits, the
+horizon `episode_steps`), and code that takes either reads it through that.
 `get_family` is for what needs a dm_control family (`ParamEnv`, the research/analysis scripts).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Mapping, Protocol, runtime_checkable
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 
 
 SPLITS = ('train', 'interpolation', 'extrapolation')
+# Control steps per episode of the dm_control families (their tasks' 1000); a family
+# with a horizon of its own says so in its spec (Sawyer-Peg-v0: Table 9's 40).
+EPISODE_STEPS = 1000
 
 
 def _fmt(values) -> str:
@@ -175,6 +180,58 @@ def check_param(live_params: tuple[LiveParam, ...], family: str, name: str,
     return f'unknown parameter {name!r}; {family} has {names}'
 
 
+# A family's task: a number for a one-parameter family (its splits are numbers, as
+# printed in the paper), a value tuple in `param_names` order for one with several.
+Task = float | tuple[float, ...]
+
+
+@runtime_checkable
+class SimFamily(Protocol):
+    """What every family's spec answers (`FamilySpec`, `GoalFamilySpec`).
+
+    Code that takes a family of either kind (the sim node, the trainer, the
+    evaluator, the adaptation report, the reset check) reads it through this.
+    Read-only properties: the specs are frozen dataclasses.
+    """
+
+    @property
+    def name(self) -> str: ...            # the family's name, e.g. 'walker-walk-v0'
+
+    @property
+    def domain(self) -> str: ...          # the robot: 'walker', 'cheetah', ..., 'sawyer'
+
+    @property
+    def description(self) -> str: ...
+
+    @property
+    def live_params(self) -> tuple[LiveParam, ...]: ...   # in value-tuple order
+
+    @property
+    def param_names(self) -> tuple[str, ...]: ...
+
+    @property
+    def train(self) -> tuple[Task, ...]: ...
+
+    @property
+    def interpolation(self) -> tuple[Task, ...]: ...
+
+    @property
+    def extrapolation(self) -> tuple[Task, ...]: ...
+
+    @property
+    def alpha_psi(self) -> float: ...     # Table 11
+
+    @property
+    def reward_varies_only(self) -> bool: ...   # tasks differ only in the reward
+
+    @property
+    def episode_steps(self) -> int: ...   # the family's horizon, in control steps
+
+    def split(self, name: str) -> tuple[Task, ...]: ...
+
+    def check_param(self, name: str, value) -> str | None: ...
+
+
 @dataclass(frozen=True)
 class FamilySpec:
     """One environment family: a dm_control task and one varied parameter."""
@@ -192,6 +249,7 @@ class FamilySpec:
     description: str
     edit_xml: Callable[[str, float], str]
     reward_varies_only: bool = False
+    episode_steps: int = EPISODE_STEPS
 
     def split(self, name: str) -> tuple[float, ...]:
         """Parameter values of a split: train, interpolation or extrapolation."""
@@ -436,7 +494,7 @@ GOAL_FAMILIES: dict[str, GoalFamilySpec] = {
                     "(Table 7, MELD's reward without its offset); the reward is observed."),
 }
 # Every family the sim node runs, by name.
-SIM_FAMILIES: dict[str, FamilySpec | GoalFamilySpec] = {**FAMILIES, **GOAL_FAMILIES}
+SIM_FAMILIES: dict[str, SimFamily] = {**FAMILIES, **GOAL_FAMILIES}
 
 
 def domain_model(domain: str) -> tuple[str, dict]:
@@ -452,6 +510,23 @@ def domain_model(domain: str) -> tuple[str, dict]:
                'cartpole': cartpole.get_model_and_assets,
                'reacher': reacher.get_model_and_assets}
     return loaders[domain]()
+
+
+def values_with(spec: SimFamily, values, changes: Mapping[str, float]) -> tuple[float, ...]:
+    """Return `values` (in `spec.param_names` order) with `changes` (name: value) made.
+
+    The one way from names to a value tuple: a ROS parameter set names the
+    parameters it changes, an env takes the whole tuple (`set_values`,
+    `prepare_values`). Each change is checked as a live set is
+    (`check_param`: a known name, a number in its live range); ValueError says why not.
+    """
+    for name, value in changes.items():
+        reason = spec.check_param(name, value)
+        if reason is not None:
+            raise ValueError(reason)
+    merged = dict(zip(spec.param_names, values, strict=True))
+    merged.update({name: float(value) for name, value in changes.items()})
+    return tuple(merged[name] for name in spec.param_names)
 
 
 def as_values(value) -> tuple[float, ...]:
@@ -478,7 +553,7 @@ def get_family(name: str) -> FamilySpec:
         raise ValueError(f'unknown family {name!r}; known: {", ".join(SIM_FAMILIES)}') from None
 
 
-def get_sim_family(name: str) -> FamilySpec | GoalFamilySpec:
+def get_sim_family(name: str) -> SimFamily:
     """Look any family up by name, with the known names in the error."""
     try:
         return SIM_FAMILIES[name]

@@ -20,7 +20,7 @@ One edit is made when the scene is compiled, none to the files: the
 hand-mocap weld gets an identity relative pose (the compiler would otherwise
 keep the hand 1.2 m away from the mocap body, their offset in the file's
 default pose; metaworld makes the same change at run time). At run time the
-block is moved to the goal (`set_goal`, in the live model).
+block is moved to the goal (`set_values`, in the live model).
 
 Task, as MELD's (the peg is already held; the horizon is Table 9's 40 steps,
 too short to pick it up first): the episode starts with the peg grasped
@@ -59,7 +59,7 @@ PARAM_NAMES = SPEC.param_names       # ('goal_x', 'goal_y'): Table 7's frame, m
 METAWORLD_VERSION = '3.1.1'
 SCENE_FILE = 'assets/sawyer_xyz/sawyer_peg_insertion_side.xml'
 
-EPISODE_STEPS = 40                  # Table 9's horizon
+EPISODE_STEPS = SPEC.episode_steps  # Table 9's horizon, 40
 CONTROL_TIMESTEP = 0.05             # s; 20 MuJoCo steps of 2.5 ms
 MAX_HAND_STEP = 0.02                # m per control step and axis at |action| = 1
 MAX_LEAD = 0.05                     # m the commanded hand position may run ahead of the hand
@@ -82,7 +82,7 @@ Goal = tuple[float, float]   # (goal_x, goal_y), Table 7's frame
 
 @dataclass(frozen=True)
 class PreparedGoal:
-    """A checked goal, not yet in force (the shape of `ParamEnv.prepare_values`' answer)."""
+    """A checked goal, not yet in force (`SawyerPegEnv.prepare_values`; `FamilyEnv`'s)."""
 
     values: Goal
 
@@ -314,13 +314,14 @@ class SawyerPegEnv:
     """
 
     def __init__(self, values: Goal | None = None, seed: int | None = 0,
-                 episode_steps: int = EPISODE_STEPS):
+                 episode_steps: int | None = None):
+        """`values` None: the default goal; `episode_steps` None: EPISODE_STEPS."""
         self.spec = SPEC
         self._model = fresh_model()
         self._data = mujoco.MjData(self._model)
         self._ids = _Ids.of(self._model)
         self._n_substeps = int(round(CONTROL_TIMESTEP / self._model.opt.timestep))
-        self.episode_steps = episode_steps
+        self.episode_steps = EPISODE_STEPS if episode_steps is None else episode_steps
         self.control_timestep = CONTROL_TIMESTEP
         self.layout = LAYOUT
         self.actuator_names = ACTION_NAMES
@@ -333,7 +334,7 @@ class SawyerPegEnv:
         # start state is the same whatever goal is set later.
         self._home = _grasp_peg(self._model, self._data, self._ids)
         self._goal = SPEC.defaults
-        self.set_goal(SPEC.defaults if values is None else values)
+        self.set_values(SPEC.defaults if values is None else values)
         self.step_count = 0
         self._previous_reward = 0.0
         self._velocity = np.zeros(6)   # mj_objectVelocity's output, reused
@@ -442,34 +443,22 @@ class SawyerPegEnv:
         self._data.ctrl[:] = (action[3], -action[3])
 
     # -- the goal (live parameters) ---------------------------------------
-    def set_param(self, name: str, value: float) -> None:
-        """Put one goal coordinate (goal_x or goal_y) into force, keeping the state."""
-        reason = SPEC.check_param(name, value)
-        if reason is not None:
-            raise ValueError(reason)
-        values = dict(zip(PARAM_NAMES, self._goal, strict=True)) | {name: float(value)}
-        self.set_goal(tuple(values[n] for n in PARAM_NAMES))
-
-    def set_goal(self, goal: Goal) -> None:
-        """Move the block so its hole is at `goal`, in the live model, keeping the state.
+    def set_values(self, values: Goal) -> None:
+        """Put the goal `values` into force: move the block, in the live model, keeping the state.
 
         The block is a static body, so this is a write of its position and
         a forward pass (microseconds): no recompile, and positions, velocities
         and the command are untouched; the arm does not jump.
         """
-        reason = check_goal(goal)
+        reason = check_goal(values)
         if reason is not None:
             raise ValueError(reason)
-        goal = tuple(float(v) for v in goal)
+        goal = tuple(float(v) for v in values)
         rotation = self._data.xmat[self._ids.box_body].reshape(3, 3)
         hole_offset = rotation @ self._hole_in_box
         self._model.body_pos[self._ids.box_body][:2] = table7_to_world(goal) - hole_offset[:2]
         mujoco.mj_forward(self._model, self._data)
         self._goal = goal
-
-    def set_values(self, values: Goal) -> None:
-        """`set_goal` under the name every env has (the evaluator's)."""
-        self.set_goal(values)
 
     def prepare_values(self, values: Goal) -> PreparedGoal:
         """Check a goal for a live swap: nothing to compile, unlike ParamEnv's."""
@@ -480,7 +469,7 @@ class SawyerPegEnv:
 
     def apply_prepared(self, prepared: PreparedGoal) -> None:
         """Put a prepared goal into force at a step boundary, keeping the state."""
-        self.set_goal(prepared.values)
+        self.set_values(prepared.values)
 
     def hole_position(self) -> np.ndarray:
         """Return the hole's position in the world (the channel's opening), m."""

@@ -1,6 +1,6 @@
 """The sim node's stepping logic without ROS: lockstep and realtime, commands, swaps, episodes.
 
-`SimStepper` owns one `ParamEnv` and decides when it steps and on which
+`SimStepper` owns one env (a `FamilyEnv`) and decides when it steps and on which
 action. It is driven by explicit calls, each given the time it happened at:
 
 * `on_command(stamp_ns, action, now)`: a command answering the state stamped
@@ -58,8 +58,8 @@ from typing import Callable
 
 import numpy as np
 
-from sim_node.env import ParamEnv, PreparedParam
-from sim_node.swaps import Values
+from sim_node.families import values_with
+from sim_node.family_env import FamilyEnv, PreparedValues, Values
 
 MODES = ('lockstep', 'realtime')
 # lockstep: how often a step waiting for a swap's build looks again (a build
@@ -109,9 +109,9 @@ class StepOutcome:
 
 
 class SimStepper:
-    """Lockstep/realtime stepping of a `ParamEnv`, with live swaps (see the module docstring)."""
+    """Lockstep/realtime stepping of a `FamilyEnv`, with live swaps (see the module docstring)."""
 
-    def __init__(self, env: ParamEnv, publish: Callable[[PublishedState], None], swaps,
+    def __init__(self, env: FamilyEnv, publish: Callable[[PublishedState], None], swaps,
                  clock: Callable[[], float] = time.monotonic, seed: int = 0):
         """Step `env`; `swaps` is a sim_node.swaps.SwapQueue (or has its methods)."""
         self.env, self.publish, self.swaps, self.clock = env, publish, swaps, clock
@@ -162,13 +162,11 @@ class SimStepper:
         return waiting[-1] if waiting else tuple(self.env.param_values)
 
     def with_changes(self, changes: dict[str, float]) -> Values:
-        """Return the wanted values with `changes` (name: value) made: what a set asks for."""
-        wanted = dict(zip(self.env.param_names, self.wanted_values, strict=True))
-        unknown = set(changes) - set(wanted)
-        if unknown:
-            raise KeyError(f'not a live parameter: {", ".join(sorted(unknown))}')
-        wanted.update({name: float(value) for name, value in changes.items()})
-        return tuple(wanted[name] for name in self.env.param_names)
+        """Return the wanted values with `changes` (name: value) made: what a set asks for.
+
+        ValueError for a name the family lacks or a value out of its live range.
+        """
+        return values_with(self.env.spec, self.wanted_values, changes)
 
     def swap_refusal(self, values: Values) -> str | None:
         """Why `values` cannot be queued now (the queue is full), or None."""
@@ -343,7 +341,7 @@ class SimStepper:
         self.env.reset(seed=seed)
         self._publish(0.0, False)
 
-    def _apply(self, prepared: PreparedParam, where: str, outcome: StepOutcome) -> None:
+    def _apply(self, prepared: PreparedValues, where: str, outcome: StepOutcome) -> None:
         old = tuple(self.env.param_values)
         self.env.apply_prepared(prepared)
         self.swaps.retire(prepared)   # the worker frees its compiled model, off the loop

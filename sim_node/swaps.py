@@ -1,7 +1,7 @@
 """Live parameter swaps built off the control loop: a FIFO of values and a worker thread.
 
 A swap has a slow half, compiling the model of the new value from the
-family's edited MJCF (`ParamEnv.prepare_param`: 2-5 ms, 1-2 ms of it Python),
+family's edited MJCF (`ParamEnv.prepare_values`: 2-5 ms, 1-2 ms of it Python),
 and a fast half, writing that model into the live one in place at a step
 boundary (`ParamEnv.apply_prepared`: ~0.2 ms). The slow half used to rebuild
 the whole Physics on the loop thread (~70 ms, the skybox texture included), and
@@ -25,13 +25,11 @@ from collections import deque
 import threading
 from typing import Callable
 
-from sim_node.env import PreparedParam
+from sim_node.family_env import PreparedValues, Values
 
 # At one value per step, the last of 8 is in force 8 steps (0.08-0.2 s) after it was asked
 # for; a flood beyond that is refused, not queued into stale values.
 SWAP_CAPACITY = 8
-
-Values = tuple[float, ...]   # a family's parameter values, in its param_names order
 
 
 def format_values(values: Values) -> str:
@@ -44,18 +42,18 @@ def format_values(values: Values) -> str:
 class SwapQueue:
     """Parameter values waiting to be put into force, the head's physics built by a worker.
 
-    `prepare(values) -> PreparedParam` runs on the worker thread and must not
-    touch the live env (`ParamEnv.prepare_values` does not). Every other method
+    `prepare(values) -> PreparedValues` runs on the worker thread and must not
+    touch the live env (`FamilyEnv.prepare_values` does not). Every other method
     is for the loop's side; they may be called from any thread.
     """
 
-    def __init__(self, prepare: Callable[[Values], PreparedParam],
+    def __init__(self, prepare: Callable[[Values], PreparedValues],
                  capacity: int = SWAP_CAPACITY):
         self.capacity = capacity
         self._prepare = prepare
         self._cond = threading.Condition()
         self._values: deque[Values] = deque()
-        self._built: PreparedParam | None = None  # the head's, once built
+        self._built: PreparedValues | None = None  # the head's, once built
         self._error: BaseException | None = None
         self._generation = 0      # bumped by clear(): a build under way is then stale
         self._retired: list = []  # used or dropped builds, freed by the worker
@@ -96,12 +94,12 @@ class SwapQueue:
                 self._worker.start()
             self._cond.notify_all()
 
-    def take_ready(self) -> PreparedParam | None:
+    def take_ready(self) -> PreparedValues | None:
         """Pop the head if its physics is built; never waits."""
         with self._cond:
             return self._pop_built()
 
-    def take_waiting(self) -> PreparedParam | None:
+    def take_waiting(self) -> PreparedValues | None:
         """Pop the head, waiting for its build; None if nothing is queued."""
         with self._cond:
             self._cond.wait_for(lambda: not self._values or self._built is not None
@@ -118,7 +116,7 @@ class SwapQueue:
             self._generation += 1
             return dropped
 
-    def retire(self, prepared: PreparedParam) -> None:
+    def retire(self, prepared: PreparedValues) -> None:
         """Hand back a value put into force, for the worker to free its compiled model."""
         with self._cond:
             self._retire(prepared)
@@ -133,7 +131,7 @@ class SwapQueue:
         if worker is not None:
             worker.join(timeout)
 
-    def _pop_built(self) -> PreparedParam | None:
+    def _pop_built(self) -> PreparedValues | None:
         if self._error is not None:
             error, self._error = self._error, None
             self._values.popleft()   # that value cannot be built: it will never take effect
@@ -145,7 +143,7 @@ class SwapQueue:
             self._cond.notify_all()  # the worker starts on the next head
         return built
 
-    def _retire(self, prepared: PreparedParam | None) -> None:
+    def _retire(self, prepared: PreparedValues | None) -> None:
         if prepared is not None:
             self._retired.append(prepared)
 

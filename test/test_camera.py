@@ -302,7 +302,7 @@ def test_an_in_place_swap_is_drawn_at_its_new_size():
     cam = SimCamera(320, 240)
     qpos, qvel = env.physics.data.qpos.copy(), env.physics.data.qvel.copy()
     short = cam.render_state(model, qpos, qvel, geometry_of(model))
-    env.apply_prepared(env.prepare_param(1.5))
+    env.apply_prepared(env.prepare_values((1.5,)))
     assert env.physics.model.ptr is model             # the same model object, edited
     stale = cam.render_state(model, qpos, qvel)       # without the copied geometry
     long = cam.render_state(model, qpos, qvel, geometry_of(model))

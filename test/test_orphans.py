@@ -131,7 +131,7 @@ def test_of_two_same_named_nodes_started_together_the_older_stays(spawn, ros_nod
 
 
 def refusal_records(output: str) -> tuple:
-    """The (older, own) start records a refusal names, read from its log line."""
+    """Return the (older, own) start records a refusal names, read from its log line."""
     from zeus_ros.ros.unique_name import START_KEY, StartRecord
     found = re.findall(rf'process (\S+), {START_KEY} (\d+)', output)
     assert len(found) == 2, output

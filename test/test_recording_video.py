@@ -39,7 +39,7 @@ def make_episode_bag(bag_dir, steps: int = 40):
     for step in range(steps + 1):
         friction = 1.0 if step < 20 else 0.4
         if step:
-            env.set_param(friction)
+            env.set_values((friction,))
             env.step(np.full(env.action_dim, 0.5 * np.sin(step / 3)))
         state = JointState(name=list(env.joint_names), position=env.joint_positions().tolist(),
                            velocity=env.joint_velocities().tolist())

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sim_node import sawyer
-from sim_node.families import table7_goals, TABLE7_X_RANGES, TABLE7_Y_RANGES
+from sim_node.families import table7_goals, TABLE7_X_RANGES, TABLE7_Y_RANGES, values_with
 from sim_node.sawyer import (ENTRIES, HAND, LAYOUT, MAX_HAND_STEP, meld_reward, OBS_DIM,
                              SawyerPegEnv, SUCCESS_DISTANCE)
 
@@ -65,7 +65,7 @@ def test_envs_share_one_compilation_but_not_its_model():
     second = SawyerPegEnv((0.60, 0.08), seed=0)
     assert first._model is not second._model
     assert not np.array_equal(first.hole_position(), second.hole_position())
-    first.set_goal((0.60, 0.08))
+    first.set_values((0.60, 0.08))
     np.testing.assert_array_equal(first.hole_position(), second.hole_position())
 
 
@@ -75,7 +75,7 @@ def test_reset_is_deterministic_per_seed(env):
         rng = np.random.default_rng(1)
         return [first] + [target.step(rng.uniform(-1, 1, 4)).observation for _ in range(10)]
 
-    env.set_goal(table7_goals('train')[0])   # as the fresh env's
+    env.set_values(table7_goals('train')[0])   # as the fresh env's
     a, b = rollout(env, 5), rollout(env, 5)
     fresh = rollout(SawyerPegEnv(table7_goals('train')[0], seed=None), 5)
     for x, y, z in zip(a, b, fresh, strict=True):
@@ -110,15 +110,15 @@ def test_the_gripper_action_opens_and_closes(env):
 
 
 def test_a_goal_swap_moves_the_hole_in_place_and_keeps_the_state(env):
-    env.set_goal((0.45, -0.075))
+    env.set_values((0.45, -0.075))
     env.reset(0)
     for _ in range(5):
         env.step([0.3, -0.2, -0.5, 1.0])
     before = {f: getattr(env.data, f).copy() for f in ('qpos', 'qvel', 'mocap_pos', 'ctrl')}
     time, hole = env.time, env.hole_position()
     model_id = id(env.model)
-    env.set_param('goal_x', 0.60)
-    env.set_param('goal_y', 0.078)
+    env.set_values(values_with(env.spec, env.param_values, {'goal_x': 0.60}))
+    env.set_values(values_with(env.spec, env.param_values, {'goal_y': 0.078}))
     assert env.param_values == (0.60, 0.078)
     # Table 7's x is the world's y, its y the world's -x.
     np.testing.assert_allclose(env.hole_position() - hole, [-0.153, 0.15, 0.0], atol=1e-6)
@@ -134,7 +134,7 @@ def test_a_goal_swap_moves_the_hole_in_place_and_keeps_the_state(env):
 def test_a_bad_goal_is_refused_and_nothing_changes(env, name, value):
     before = env.param_values
     with pytest.raises(ValueError):
-        env.set_param(name, value)
+        env.set_values(values_with(env.spec, env.param_values, {name: value}))
     assert env.param_values == before
 
 
@@ -167,7 +167,7 @@ def test_the_reward_is_the_written_formula_and_peaks_when_inserted(env):
 
 def test_a_scripted_insertion_succeeds_for_goals_of_both_splits(env):
     for goal in (table7_goals('train')[0], table7_goals('interpolation')[3]):
-        env.set_goal(goal)
+        env.set_values(goal)
         env.reset(2)
         assert env.peg_goal_distance() > 0.1
         results = _scripted_insertion(env)
@@ -242,7 +242,7 @@ def test_a_joint_state_of_the_entries_gives_the_controllers_the_same_observation
     assert OBS_DIM == 2 * len(ENTRIES) - 3 + 1
 
 
-def test_a_prepared_goal_applies_as_set_goal_and_a_bad_one_is_refused(env):
+def test_a_prepared_goal_applies_as_set_values_and_a_bad_one_is_refused(env):
     env.reset(0)
     prepared = env.prepare_values((0.6, 0.07))
     assert env.param_values != (0.6, 0.07)     # preparing changes nothing
@@ -260,7 +260,7 @@ def test_the_camera_draws_the_block_where_the_goal_puts_it(env):
     try:
         frames = []
         for goal in ((0.45, -0.075), (0.6, 0.075)):
-            env.set_goal(goal)
+            env.set_values(goal)
             physics = env.physics
             frames.append(camera.render_state(physics.model.ptr, physics.data.qpos.copy(),
                                               None, geometry_of(physics.model.ptr)))

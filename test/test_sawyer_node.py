@@ -12,7 +12,7 @@ from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.parameter import Parameter
 from sim_driver import (assert_same_rewards, collect, episode_rewards, LockstepDriver, QOS,
                         start_node, start_sim)
-from sim_node.families import table7_goals
+from sim_node.families import table7_goals, values_with
 from sim_node.sawyer import ACTION_NAMES, ENTRIES, SawyerPegEnv
 from zeus_msgs.msg import Context, StepInfo
 from zeus_ros.deploy.inference import InferenceModel
@@ -45,8 +45,7 @@ def in_process_episode(seed, sequence):
     positions, rewards, goals = [env.joint_positions()], [], [env.param_values]
     for i, action in enumerate(sequence):
         if i in SWAPS:
-            for name, value in SWAPS[i].items():
-                env.set_param(name, value)
+            env.set_values(values_with(env.spec, env.param_values, SWAPS[i]))   # one swap
         rewards.append(env.step(action).reward)
         positions.append(env.joint_positions())
         goals.append(env.param_values)

@@ -76,10 +76,10 @@ def test_live_swap_keeps_state_and_changes_physics():
     for _ in range(40):
         env.step(np.full(6, 0.3))
     qpos, qvel, t = env.joint_positions(), env.joint_velocities(), env.time
-    env.set_param(0.4)
+    env.set_values((0.4,))
     np.testing.assert_array_equal(env.joint_positions(), qpos)
     np.testing.assert_array_equal(env.joint_velocities(), qvel)
-    assert env.time == t and env.param_value == 0.4
+    assert env.time == t and env.param_values == (0.4,)
     assert env.physics.model.geom_friction[0, 0] == pytest.approx(0.4)
 
 
@@ -89,8 +89,8 @@ def test_bad_values_and_actions_are_refused():
     env = ParamEnv('walker-walk-v0')
     for value in (float('nan'), -1.0):
         with pytest.raises(ValueError):
-            env.set_param(value)
-    assert env.param_value == get_family('walker-walk-v0').default
+            env.set_values((value,))
+    assert env.param_values == (get_family('walker-walk-v0').default,)
     assert check_action([np.nan] * 6, 6)[0] is None
     assert check_action([1.0] * 5, 6)[1] == 'action has 5 values, expected 6'
     assert check_action([3.0, -3.0, 0, 0, 0, 0], 6)[0].tolist() == [1, -1, 0, 0, 0, 0]
@@ -162,3 +162,14 @@ def test_reacher_length_target_is_observed_and_still_and_the_tip_depends_on_the_
     tips = [e.physics.named.data.geom_xpos['finger', :2].copy() for e in (short, long_)]
     assert np.linalg.norm(tips[0] - tips[1]) > 0.05                # same command, other tip
     assert r_short != r_long
+
+
+def test_a_one_parameter_env_takes_a_value_tuple_of_one():
+    env = ParamEnv('walker-walk-v0', 1.0)
+    for values in ((), (0.4, 0.5), (10.0,)):
+        with pytest.raises(ValueError):
+            env.set_values(values)
+        with pytest.raises(ValueError):
+            env.prepare_values(values)
+    assert env.param_values == (1.0,) and env.param_names == ('friction',)
+    assert not hasattr(env, 'param_value') and not hasattr(env, 'set_param')

@@ -310,15 +310,15 @@ def test_switching_to_realtime_hands_a_held_command_to_the_ticks(rig):
 
 
 # -- with the real worker thread ------------------------------------------------------
-def test_a_swap_through_the_worker_equals_set_param_in_process():
-    """The bit-exact rule: a swap at step 10 gives the trajectory of env.set_param at step 10."""
+def test_a_swap_through_the_worker_equals_set_values_in_process():
+    """The bit-exact rule: a swap at step 10 gives the trajectory of env.set_values at step 10."""
     sequence = actions(30, seed=4)
     twin = ParamEnv(FAMILY, 1.0, seed=2)
     twin.reset(seed=2)
     expected = []
     for i, action in enumerate(sequence):
         if i == 10:
-            twin.set_param(0.4)
+            twin.set_values((0.4,))
         twin.step(action)
         expected.append(twin.joint_positions())
     env = ParamEnv(FAMILY, 1.0, seed=2)
@@ -353,7 +353,7 @@ def test_the_swap_queue_builds_on_its_worker_in_order():
         swaps.push((0.4,))
         swaps.push((1.2,))
         assert 'already waiting' in swaps.full_reason() and '0.4, 1.2' in swaps.full_reason()
-        assert [swaps.take_waiting().value, swaps.take_waiting().value] == [0.4, 1.2]
+        assert [swaps.take_waiting().values, swaps.take_waiting().values] == [(0.4,), (1.2,)]
         assert len(set(built_on)) == 1 and threading.get_ident() not in built_on
         swaps.push((0.5,))
         swaps.push((0.6,))

@@ -1,8 +1,8 @@
-"""A swap in two halves (prepare off the loop, apply in place) is the trainer's set_param, exactly.
+"""A swap in two halves (prepare off the loop, apply in place) is exactly the trainer's set_values.
 
 families.py's XML edit stays the one definition of each parameter: the sim
 node compiles the edited XML (`build_model`) and writes that model into the
-live one. These tests hold it to `ParamEnv.set_param` (a new Physics from the
+live one. These tests hold it to `ParamEnv.set_values` (a new Physics from the
 same XML): same model, field for field, and bit-identical trajectories.
 """
 
@@ -50,7 +50,7 @@ def test_build_model_is_the_model_build_physics_compiles_but_its_textures(family
 
 
 @pytest.mark.parametrize('family', list(FAMILIES))
-def test_prepare_and_apply_give_set_params_trajectory_bit_for_bit(family):
+def test_prepare_and_apply_give_set_values_trajectory_bit_for_bit(family):
     """Five swaps mid-episode and an episode start in between, two seeds, every family."""
     spec = FAMILIES[family]
     values = swap_values(spec)
@@ -63,8 +63,8 @@ def test_prepare_and_apply_give_set_params_trajectory_bit_for_bit(family):
         for i, action in enumerate(sequence):
             if i % 50 == 20:
                 value = values[i // 50]
-                reference.set_param(value)
-                swapped.apply_prepared(swapped.prepare_param(value))
+                reference.set_values((value,))
+                swapped.apply_prepared(swapped.prepare_values((value,)))
             expected, result = reference.step(action), swapped.step(action)
             assert result.reward == expected.reward, (family, seed, i)
             np.testing.assert_array_equal(swapped.joint_positions(),
@@ -84,26 +84,26 @@ def test_prepare_and_apply_give_set_params_trajectory_bit_for_bit(family):
         assert_structs_equal(live, expected_model)
 
 
-def test_prepare_param_leaves_the_env_alone_and_runs_on_any_thread():
+def test_prepare_values_leaves_the_env_alone_and_runs_on_any_thread():
     env = ParamEnv('walker-walk-v0', 1.0, seed=0)
     env.reset(seed=0)
     before = env.joint_positions()
     prepared = []
-    worker = threading.Thread(target=lambda: prepared.append(env.prepare_param(0.4)))
+    worker = threading.Thread(target=lambda: prepared.append(env.prepare_values((0.4,))))
     worker.start()
     worker.join()
-    assert env.param_value == 1.0 and prepared[0].value == 0.4
+    assert env.param_values == (1.0,) and prepared[0].values == (0.4,)
     np.testing.assert_array_equal(env.joint_positions(), before)
     env.apply_prepared(prepared[0])
-    assert env.param_value == 0.4
+    assert env.param_values == (0.4,)
     assert env.physics.model.geom_friction[0, 0] == 0.4
     np.testing.assert_array_equal(env.joint_positions(), before)   # the state carried over
 
 
-def test_prepare_param_refuses_a_value_outside_the_live_range():
+def test_prepare_values_refuses_a_value_outside_the_live_range():
     env = ParamEnv('walker-walk-v0', 1.0, seed=0)
     with pytest.raises(ValueError, match='outside the allowed range'):
-        env.prepare_param(10.0)
+        env.prepare_values((10.0,))
 
 
 def rss_mb() -> float:

@@ -222,7 +222,7 @@ def test_train_swaps_move_tasks_between_training_values_and_the_replay_follows(t
     assert len(seen) > 1 and len(set(params[-1])) > 1
     # Every transition carries the value in force when it was taken, which
     # after a swap is not its task's first one.
-    assert (params[-1] == np.float32([env.param_value for env in trainer.envs])).all()
+    assert (params[-1] == np.float32([env.param_values[0] for env in trainer.envs])).all()
     assert (params != np.asarray(trainer.values, np.float32).reshape(-1)).any()
     # Without swaps nothing moves, and no random draw is spent on them.
     still = train.Trainer(train.RunArgs(out=tmp_path / 'still', family=FAMILY,

@@ -72,7 +72,7 @@ def in_process_rate(weights: Path, steps: int, samples: int = 5) -> tuple[float,
     rates, cpu_start, total = [], time.process_time(), 0
     for sample in range(samples):
         start = time.perf_counter()
-        record = run_episode(model, model.family, env.param_value, seed=sample, env=env)
+        record = run_episode(model, model.family, env.param_values, seed=sample, env=env)
         rates.append(len(record.actions) / (time.perf_counter() - start))
         total += len(record.actions)
     return float(np.median(rates)), 1e3 * (time.process_time() - cpu_start) / total

@@ -48,6 +48,7 @@ from scipy.stats import spearmanr
 
 from sim_node.env import make_env
 from sim_node.families import as_values, format_task, get_sim_family
+from sim_node.family_env import FamilyEnv
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.learning_tools.evaluate import EpisodeProbe, run_episode
@@ -166,7 +167,7 @@ class FrozenContext(EpisodeProbe):
     def __init__(self, latent: np.ndarray, other_value):
         self.frozen, self.other = latent.astype(np.float32), other_value
 
-    def true_param(self, env) -> float | tuple[float, ...]:  # noqa: ARG002 (EpisodeProbe's signature)
+    def true_param(self, env: FamilyEnv) -> float | tuple[float, ...]:  # noqa: ARG002 (EpisodeProbe's signature)
         return self.other
 
     def latent(self, latent) -> np.ndarray:  # noqa: ARG002 (EpisodeProbe's signature)
@@ -183,10 +184,10 @@ class OtherPhysicsWindow(EpisodeProbe):
         self.other = other_value
         self.counterfactual = None
 
-    def true_param(self, env) -> float | tuple[float, ...]:  # noqa: ARG002 (EpisodeProbe's signature)
+    def true_param(self, env: FamilyEnv) -> float | tuple[float, ...]:  # noqa: ARG002 (EpisodeProbe's signature)
         return self.other
 
-    def before_step(self, env, action) -> None:
+    def before_step(self, env: FamilyEnv, action: np.ndarray) -> None:
         self.shadow.copy_state_from(env)
         self.counterfactual = self.shadow.step(action)
 
@@ -200,7 +201,7 @@ class SpeedRecorder(EpisodeProbe):
     def __init__(self):
         self.env, self.speeds = None, []
 
-    def before_step(self, env, action) -> None:  # noqa: ARG002 (EpisodeProbe's signature)
+    def before_step(self, env: FamilyEnv, action: np.ndarray) -> None:  # noqa: ARG002 (EpisodeProbe's signature)
         self.env = env
 
     def window_transition(self, result) -> tuple[float, np.ndarray]:
@@ -317,7 +318,7 @@ def swap_responses(model, spec, cfg: ReportConfig) -> list[SwapResponse]:
         a, b = _farthest_pair(spec.extrapolation)
         pairs += [(a, b), (b, a)]
     out = []
-    steps = min(cfg.swap_steps, getattr(spec, 'episode_steps', cfg.swap_steps))
+    steps = min(cfg.swap_steps, spec.episode_steps)
     swap_step = min(cfg.swap_step, steps // 2)
     swap_cfg = ReportConfig(1, cfg.seed, steps, swap_step, steps)
     for a, b in pairs:
@@ -400,8 +401,8 @@ def build_report(weights: str, cfg: ReportConfig) -> AdaptationReport:
     if cfg.window:   # the encoders pool over a masked window of any length
         model.k = cfg.window
     spec = get_sim_family(model.family)
-    if hasattr(spec, 'episode_steps'):   # a family with its own horizon (Sawyer: 40 steps)
-        cfg = replace(cfg, max_steps=min(cfg.max_steps, spec.episode_steps))
+    # No episode longer than the family's own (Sawyer: 40 steps, the others 1000).
+    cfg = replace(cfg, max_steps=min(cfg.max_steps, spec.episode_steps))
     values = sorted({v for s in ('train', *HELD_OUT) for v in spec.split(s)})
     velocity = None
     if spec.param_names == ('target_velocity',):

@@ -31,8 +31,9 @@ import sys
 
 import numpy as np
 
-from sim_node.env import make_env, ParamEnv
+from sim_node.env import make_env
 from sim_node.families import as_values, format_task, get_sim_family, SPLITS
+from sim_node.family_env import FamilyEnv
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.core.window import ContextWindow
@@ -61,7 +62,7 @@ class EpisodeProbe:
     whether a policy acts on its context.
     """
 
-    def true_param(self, env: ParamEnv) -> float | tuple[float, ...]:
+    def true_param(self, env: FamilyEnv) -> float | tuple[float, ...]:
         """Return the true value(s) a privileged method is given."""
         return env.param_values
 
@@ -69,7 +70,7 @@ class EpisodeProbe:
         """Return the latent the policy acts on."""
         return latent
 
-    def before_step(self, env: ParamEnv, action: np.ndarray) -> None:
+    def before_step(self, env: FamilyEnv, action: np.ndarray) -> None:
         """See the state and action just before the env steps."""
 
     def window_transition(self, result) -> tuple[float, np.ndarray]:
@@ -94,13 +95,13 @@ class _Recorder:
 
 
 def model_env(model: InferenceModel, value=None, seed: int | None = 0,
-              family: str | None = None, **kwargs) -> ParamEnv:
+              family: str | None = None, **kwargs) -> FamilyEnv:
     """Make an env (of the model's family by default) observing what the model reads."""
     return make_env(family or model.family, None if value is None else as_values(value),
                     seed=seed, reward_in_obs=model.reward_in_observation, **kwargs)
 
 
-def _episode_env(model, family, value, seed, max_steps, env) -> ParamEnv:
+def _episode_env(model, family, value, seed, max_steps, env) -> FamilyEnv:
     if env is None:
         kwargs = {} if max_steps is None else {'episode_steps': max_steps}
         return model_env(model, value, seed, family, **kwargs)
@@ -115,7 +116,7 @@ def _episode_env(model, family, value, seed, max_steps, env) -> ParamEnv:
 
 def run_episode(model: InferenceModel, family: str, value, seed: int,
                 swap_schedule: dict | None = None, max_steps: int | None = None,
-                env: ParamEnv | None = None, probe: EpisodeProbe | None = None) -> EpisodeRecord:
+                env: FamilyEnv | None = None, probe: EpisodeProbe | None = None) -> EpisodeRecord:
     """Run one deterministic episode in the ROS loop's order; return per-step records."""
     env = _episode_env(model, family, value, seed, max_steps, env)
     probe = probe or EpisodeProbe()

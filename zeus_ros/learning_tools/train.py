@@ -36,9 +36,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from sim_node.env import make_env, ParamEnv
+from sim_node.env import make_env
 from sim_node.families import (as_values, format_task, get_sim_family, SIM_FAMILIES,
                                SPLITS)
+from sim_node.family_env import FamilyEnv
 from zeus_ros.deploy.checkpoint import (CheckpointError, load_training_checkpoint,
                                  numpy_generator_state, restore_numpy_generator,
                                  save_checkpoint)
@@ -58,7 +59,7 @@ from zeus_ros.learning_tools.evaluate import evaluate
 RUN_COLUMNS = ('timestep', 'env_steps', 'wall_s', 'env_steps_per_s')
 
 
-def env_info(env: ParamEnv) -> dict:
+def env_info(env: FamilyEnv) -> dict:
     """Describe the environment layout for the checkpoint metadata (any family's env)."""
     return {'param_name': ', '.join(env.param_names), 'param_names': env.param_names,
             'joint_names': env.layout.joint_names,
@@ -73,18 +74,17 @@ def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
                   **overrides) -> ZeusConfig:
     """Build the preset with the family's facts (Table 11's alpha_psi, reward-varying)."""
     spec = get_sim_family(family)
-    if hasattr(spec, 'episode_steps'):   # a family with its own horizon (Sawyer: Table 9's 40)
-        overrides = {'episode_steps': spec.episode_steps, **overrides}
+    overrides = {'episode_steps': spec.episode_steps, **overrides}   # Sawyer: Table 9's 40
     return make_config(family, profile, method, family_alpha_psi=spec.alpha_psi,
                        reward_varying=spec.reward_varies_only, **overrides)
 
 
-def make_agent(cfg: ZeusConfig, env: ParamEnv) -> Agent:
+def make_agent(cfg: ZeusConfig, env: FamilyEnv) -> Agent:
     """Agent sized for the env, with the parameter normalised on the train values."""
     return Agent(cfg, env.obs_dim, env.action_dim, param_normaliser(env.spec.train))
 
 
-def make_replay(cfg: ZeusConfig, env, agent: Agent, seed: int) -> ReplayBuffer:
+def make_replay(cfg: ZeusConfig, env: FamilyEnv, agent: Agent, seed: int) -> ReplayBuffer:
     """Return the replay buffer sized for the env: the true values one column per parameter."""
     return ReplayBuffer(cfg.replay_capacity, env.obs_dim, env.action_dim, cfg.context_length,
                         agent.row_dim, seed=seed, param_dim=len(env.param_names))
@@ -356,13 +356,13 @@ class Trainer:
             return tuple(float(v) for v in np.exp(self.rng.uniform(np.log(lo), np.log(hi))))
         return tuple(float(v) for v in self.rng.uniform(lo, hi))
 
-    def _reset_task(self, i: int, env: ParamEnv) -> np.ndarray:
+    def _reset_task(self, i: int, env: FamilyEnv) -> np.ndarray:
         """Start task i's next episode, at a freshly drawn value when sampling a range."""
         if self.cfg.train_sampling != 'values':
             env.apply_prepared(env.prepare_values(self._draw_value()))
         return env.reset(seed=self._episode_seed(i))
 
-    def _step_task(self, i: int, env: ParamEnv, action: np.ndarray) -> None:
+    def _step_task(self, i: int, env: FamilyEnv, action: np.ndarray) -> None:
         res = env.step(action)
         self.env_steps += 1
         w = self.windows[i]

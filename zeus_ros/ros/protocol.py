@@ -9,7 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_node.layout import check_action
-from sim_node.families import FamilySpec, GoalFamilySpec
+from sim_node.families import SimFamily
 
 NANOSECONDS = 1_000_000_000
 # Reset.seed: -1 keeps the random stream of initial states; 0 <= seed < 2**32
@@ -55,7 +55,7 @@ def check_seed(seed: int) -> str | None:
 
 
 def check_reset_request(seed: int, names: Sequence[str], values: Sequence[float],
-                        spec: FamilySpec | GoalFamilySpec) -> str | None:
+                        spec: SimFamily) -> str | None:
     """Return why a reset request is refused, or None.
 
     A valid seed (check_seed); one value per name; each name one of the

@@ -130,7 +130,7 @@ def same_named_count(node) -> int:
 
 
 def refusal(node, own: StartRecord, older: StartRecord | None = None) -> DuplicateNode:
-    """The error a node refuses with; it names both processes, so a user knows which to stop."""
+    """Return the error a node refuses with; it names both processes, for the user to stop one."""
     domain = os.environ.get('ROS_DOMAIN_ID', '0')
     other = (f'process {older.hardware_id}, {START_KEY} {older.started_ns}' if older
              else 'it published no start record')
@@ -206,7 +206,7 @@ class NameGuard:
                 'graph; it refuses to run beside this one')
 
     def _older(self, records: list[StartRecord]) -> StartRecord | None:
-        """The oldest of `records` that this node must refuse to run beside, if any."""
+        """Return the oldest of `records` that this node must refuse to run beside, if any."""
         older = [record for record in records if verdict(self.own, record) == REFUSE]
         return min(older, key=lambda record: (record.started_ns, record.hardware_id),
                    default=None)

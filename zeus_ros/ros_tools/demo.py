@@ -432,7 +432,7 @@ class DemoRun:
     def run(self, policy: Policy, schedule: list[Swap], seed: int, steps: int,
             max_seconds: float) -> RunRecord:
         """Warm up, reset, drive the episode; check and return what was received."""
-        from sim_node.env import EPISODE_STEPS
+        from sim_node.families import get_sim_family
         self.warm_up(seed)
         self.check_graph()   # the loop runs: every publisher on it has been discovered
         started = time.monotonic()
@@ -443,7 +443,8 @@ class DemoRun:
         wait_until(lambda: self.recorder.counts['/diagnostics'] > 0, 2.0)
         self.check_graph()   # still only the demo's own nodes, to the end
         rows = sorted((s for s in self.rows if s.episode == episode), key=lambda s: s.step)
-        check_episode(rows, self.contexts, self.gate.forwarded, steps, EPISODE_STEPS)
+        check_episode(rows, self.contexts, self.gate.forwarded, steps,
+                      get_sim_family(policy.family).episode_steps)
         return RunRecord(policy, episode, rows, dict(self.contexts), seconds,
                          self.recorder.counts, self.recorder.bag.bag_dir)
 

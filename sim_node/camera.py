@@ -16,9 +16,13 @@ from __future__ import annotations
 
 import math
 import os
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
+
+if TYPE_CHECKING:
+    from sim_node.family_env import EnvPhysics
 
 
 class NoOffscreenGL(RuntimeError):
@@ -87,7 +91,8 @@ def geometry_of(model: mujoco.MjModel) -> dict[str, np.ndarray]:
 class _GLScene:
     """What drawing one model takes: its private copy, a scene and a MuJoCo GL context."""
 
-    def __init__(self, source: mujoco.MjModel, width: int, height: int, camera):
+    def __init__(self, source: mujoco.MjModel, width: int, height: int,
+                 camera: int | str | None):
         # A copy, so that rendering reads nothing the stepping thread holds,
         # with an off-screen buffer at least as large as the frame.
         self.model = source.__copy__()
@@ -112,7 +117,8 @@ class _GLScene:
             return float(self.model.cam_fovy[self.camera_id])
         return float(self.model.vis.global_.fovy)
 
-    def draw(self, qpos, qvel, width: int, height: int, geometry=None) -> np.ndarray:
+    def draw(self, qpos: np.ndarray, qvel: np.ndarray | None, width: int, height: int,
+             geometry: dict[str, np.ndarray] | None = None) -> np.ndarray:
         for name, values in (geometry or {}).items():
             getattr(self.model, name)[:] = values
         self.data.qpos[:] = qpos
@@ -148,12 +154,13 @@ class SimCamera:
         self._source = None      # the model the scene was made from
         self._scene: _GLScene | None = None
 
-    def render(self, physics) -> np.ndarray:
+    def render(self, physics: EnvPhysics) -> np.ndarray:
         """Frame (height, width, 3) uint8 of a dm_control Physics in its current state."""
         return self.render_state(physics.model.ptr, physics.data.qpos, physics.data.qvel)
 
-    def render_state(self, model: mujoco.MjModel, qpos, qvel=None,
-                     geometry: dict | None = None) -> np.ndarray:
+    def render_state(self, model: mujoco.MjModel, qpos: np.ndarray,
+                     qvel: np.ndarray | None = None,
+                     geometry: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """Frame of `model` at joint positions `qpos` (velocities only matter to nothing drawn).
 
         Raises NoOffscreenGL when no GL context can be made.

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 import functools
 import math
+from typing import TYPE_CHECKING
 import xml.etree.ElementTree as ElementTree
 
 from dm_control.rl import control
@@ -37,6 +38,9 @@ from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_fam
                                GOAL_FAMILIES)
 from sim_node.family_env import FamilyEnv
 from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout, StepResult
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 __all__ = ['check_action', 'ObservationLayout', 'ParamEnv', 'StepResult', 'layout_from_model']
 
@@ -52,11 +56,12 @@ _PHYSICS = {'walker': walker.Physics, 'cheetah': cheetah.Physics, 'finger': fing
 class CheetahTargetVelocity(cheetah.Cheetah):
     """Cheetah with MELD's cheetah-vel reward: -|v - v_target| - 0.05 |a|^2."""
 
-    def __init__(self, target_velocity: float, random=None):
+    def __init__(self, target_velocity: float,
+                 random: np.random.RandomState | int | None = None):
         super().__init__(random=random)
         self.target_velocity = float(target_velocity)
 
-    def get_reward(self, physics):  # noqa: D102
+    def get_reward(self, physics: cheetah.Physics):  # noqa: D102
         speed_error = abs(physics.speed() - self.target_velocity)
         control_cost = 0.05 * float(np.sum(np.square(physics.data.ctrl)))
         return -speed_error - control_cost
@@ -73,7 +78,7 @@ class ReachTargetInSpace(base.Task):
 
     TARGET_RADII = (0.10, 0.17)
 
-    def initialize_episode(self, physics):  # noqa: D102
+    def initialize_episode(self, physics: dm_mujoco.Physics):  # noqa: D102
         qpos = physics.named.data.qpos
         qpos['shoulder'] = self.random.uniform(-np.pi, np.pi)
         qpos['wrist'] = self.random.uniform(*np.radians((-160.0, 160.0)))
@@ -83,10 +88,11 @@ class ReachTargetInSpace(base.Task):
         qpos['target_y'] = radius * np.cos(angle)
         super().initialize_episode(physics)
 
-    def get_observation(self, physics):  # noqa: D102, ARG002 (the env builds its own)
+    # ARG002: the env builds its own observation.
+    def get_observation(self, physics: dm_mujoco.Physics):  # noqa: D102, ARG002
         return {}
 
-    def get_reward(self, physics):  # noqa: D102
+    def get_reward(self, physics: dm_mujoco.Physics):  # noqa: D102
         xpos = physics.named.data.geom_xpos
         distance = float(np.linalg.norm(xpos['target', :2] - xpos['finger', :2]))
         return rewards.tolerance(distance, bounds=(0.0, 0.01), margin=0.05,
@@ -328,7 +334,7 @@ class ParamEnv:
         self._reset_physics()
         return self.observation()
 
-    def step(self, action) -> StepResult:
+    def step(self, action: ArrayLike) -> StepResult:
         """Apply a normalised action for one control period.
 
         Raises ValueError for an action that `check_action` rejects: callers
@@ -423,7 +429,7 @@ class ParamEnv:
             self._task.initialize_episode(self._physics)
 
 
-def _copy_state(source, physics) -> None:
+def _copy_state(source: dm_mujoco.wrapper.MjData, physics: dm_mujoco.Physics) -> None:
     """Copy the dynamic state of MjData `source` into `physics` and recompute derived terms."""
     # Same joints, actuators and activations: only sizes/friction/masses differ.
     new = physics.data

@@ -20,7 +20,7 @@ horizon `episode_steps`), and code that takes either reads it through that.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Mapping, Protocol, runtime_checkable
+from typing import Callable, Iterable, Mapping, Protocol, runtime_checkable, Sequence
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
@@ -32,7 +32,7 @@ SPLITS = ('train', 'interpolation', 'extrapolation')
 EPISODE_STEPS = 1000
 
 
-def _fmt(values) -> str:
+def _fmt(values: Iterable[float]) -> str:
     return ' '.join(f'{float(v):.10g}' for v in values)
 
 
@@ -154,7 +154,7 @@ class LiveParam:
     live_range: tuple[float, float]
     description: str
 
-    def check(self, value) -> str | None:
+    def check(self, value: object) -> str | None:   # any value: checking it is the point
         """Return why a value cannot be put into force, or None when it can."""
         lo, hi = self.live_range
         try:
@@ -171,7 +171,7 @@ class LiveParam:
 
 
 def check_param(live_params: tuple[LiveParam, ...], family: str, name: str,
-                value) -> str | None:
+                value: object) -> str | None:
     """Why `name=value` cannot be put into force in `family`, or None when it can."""
     for param in live_params:
         if param.name == name:
@@ -229,7 +229,7 @@ class SimFamily(Protocol):
 
     def split(self, name: str) -> tuple[Task, ...]: ...
 
-    def check_param(self, name: str, value) -> str | None: ...
+    def check_param(self, name: str, value: object) -> str | None: ...
 
 
 @dataclass(frozen=True)
@@ -272,7 +272,7 @@ class FamilySpec:
         """Return why a value cannot be put into force, or None when it can."""
         return self.live_params[0].check(value)
 
-    def check_param(self, name: str, value) -> str | None:
+    def check_param(self, name: str, value: object) -> str | None:
         """Return why `name=value` cannot be put into force, or None when it can."""
         return check_param(self.live_params, self.name, name, value)
 
@@ -472,7 +472,7 @@ class GoalFamilySpec:
             raise ValueError(f'unknown split {name!r}; expected one of {SPLITS}')
         return getattr(self, name)
 
-    def check_param(self, name: str, value) -> str | None:
+    def check_param(self, name: str, value: object) -> str | None:
         """Return why `name=value` cannot be put into force, or None when it can."""
         return check_param(self.live_params, self.name, name, value)
 
@@ -512,7 +512,8 @@ def domain_model(domain: str) -> tuple[str, dict]:
     return loaders[domain]()
 
 
-def values_with(spec: SimFamily, values, changes: Mapping[str, float]) -> tuple[float, ...]:
+def values_with(spec: SimFamily, values: Sequence[float],
+                changes: Mapping[str, float]) -> tuple[float, ...]:
     """Return `values` (in `spec.param_names` order) with `changes` (name: value) made.
 
     The one way from names to a value tuple: a ROS parameter set names the
@@ -529,14 +530,14 @@ def values_with(spec: SimFamily, values, changes: Mapping[str, float]) -> tuple[
     return tuple(merged[name] for name in spec.param_names)
 
 
-def as_values(value) -> tuple[float, ...]:
+def as_values(value: float | Sequence[float] | np.ndarray) -> tuple[float, ...]:
     """Return a task's value as a value tuple: (v,) for a one-parameter family's number."""
     if isinstance(value, tuple | list | np.ndarray):
         return tuple(float(v) for v in value)
     return (float(value),)
 
 
-def format_task(value) -> str:
+def format_task(value: float | Sequence[float] | np.ndarray) -> str:
     """Return a task's value as text: '0.4', or '0.445 -0.0705' for several parameters."""
     return ' '.join(f'{v:.6g}' for v in as_values(value))
 

@@ -22,12 +22,15 @@ protocol's read-only property would hide an env's plain attribute).
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable, Self, TypeVar
+from typing import Any, Protocol, runtime_checkable, Self, TYPE_CHECKING, TypeVar
 
 import numpy as np
 
 from sim_node.families import SimFamily
 from sim_node.layout import ObservationLayout, StepResult
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 Values = tuple[float, ...]   # a family's parameter values, in its param_names order
 
@@ -108,7 +111,7 @@ class FamilyEnv(Protocol[PreparedT]):
 
     def reset(self, seed: int | None = None) -> np.ndarray: ...
 
-    def step(self, action) -> StepResult: ...
+    def step(self, action: ArrayLike) -> StepResult: ...
 
     def copy_state_from(self, other: Self) -> None: ...   # the adaptation report's shadow
 

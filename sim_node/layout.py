@@ -11,8 +11,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
+from typing import Sequence, TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 # Horizontal position is dropped from the observation: the tasks are invariant
 # to it, and it grows without bound while the robot moves.
@@ -77,7 +81,8 @@ class ObservationLayout:
             out[-1] = float(reward)
         return out
 
-    def observation_from_joint_state(self, names, positions, velocities,
+    def observation_from_joint_state(self, names: Sequence[str], positions: Sequence[float],
+                                     velocities: Sequence[float],
                                      reward: float = 0.0) -> np.ndarray:
         """Observation from a JointState's fields; the names may be in any order."""
         index = {name: i for i, name in enumerate(names)}
@@ -89,7 +94,7 @@ class ObservationLayout:
                                 np.asarray(velocities, dtype=np.float64)[order], reward)
 
 
-def check_action(action, action_dim: int) -> tuple[np.ndarray | None, str | None]:
+def check_action(action: ArrayLike, action_dim: int) -> tuple[np.ndarray | None, str | None]:
     """Validate an action: a finite vector of the right length, clipped to [-1, 1].
 
     Returns (action, None) when usable, (None, reason) when not.

@@ -46,12 +46,16 @@ import importlib.metadata
 import importlib.util
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
 from sim_node.families import GOAL_FAMILIES, SAWYER_PEG
 from sim_node.layout import check_action, ObservationLayout, StepResult
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 SPEC = GOAL_FAMILIES[SAWYER_PEG]
 FAMILY_NAME = SPEC.name
@@ -126,7 +130,7 @@ def meld_reward(distance: float) -> float:
     return -(scaled_sq + math.log10(scaled_sq + REWARD_EPS))
 
 
-def check_goal(values) -> str | None:
+def check_goal(values: object) -> str | None:   # any value: checking it is the point
     """Why a goal (goal_x, goal_y) cannot be put into force, or None when it can."""
     try:
         values = tuple(values)
@@ -224,10 +228,10 @@ class _Ids:
 
     @classmethod
     def of(cls, model: mujoco.MjModel) -> '_Ids':
-        def site(name):
+        def site(name: str):
             return model.site(name).id
 
-        def geom(name):
+        def geom(name: str):
             return model.geom(name).id
 
         peg_joint = model.body('peg').jntadr[0]
@@ -405,7 +409,7 @@ class SawyerPegEnv:
         self._previous_reward = 0.0
         return self.observation()
 
-    def step(self, action) -> SawyerStepResult:
+    def step(self, action: ArrayLike) -> SawyerStepResult:
         """Apply a normalised action for one control period.
 
         Raises ValueError for an action that `check_action` rejects, as ParamEnv.

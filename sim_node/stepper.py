@@ -54,12 +54,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 import time
-from typing import Callable
+from typing import Callable, TYPE_CHECKING
 
 import numpy as np
 
 from sim_node.families import values_with
 from sim_node.family_env import FamilyEnv, PreparedValues, Values
+
+if TYPE_CHECKING:
+    from sim_node.swaps import SwapQueue
 
 MODES = ('lockstep', 'realtime')
 # lockstep: how often a step waiting for a swap's build looks again (a build
@@ -111,8 +114,9 @@ class StepOutcome:
 class SimStepper:
     """Lockstep/realtime stepping of a `FamilyEnv`, with live swaps (see the module docstring)."""
 
-    def __init__(self, env: FamilyEnv, publish: Callable[[PublishedState], None], swaps,
-                 clock: Callable[[], float] = time.monotonic, seed: int = 0):
+    def __init__(self, env: FamilyEnv, publish: Callable[[PublishedState], None],
+                 swaps: SwapQueue, clock: Callable[[], float] = time.monotonic,
+                 seed: int = 0):
         """Step `env`; `swaps` is a sim_node.swaps.SwapQueue (or has its methods)."""
         self.env, self.publish, self.swaps, self.clock = env, publish, swaps, clock
         self.dt_ns = int(round(env.control_timestep * 1e9))

@@ -25,6 +25,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from typing import Sequence, TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -37,6 +38,9 @@ from zeus_ros.core.networks import Actor, Critic, ObsEncoder, weight_init
 from zeus_ros.core.replay import Batch
 from zeus_ros.core.window import row_dim
 
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
 # The SAC core's own modules and optimisers; a method adds its own to each group.
 CORE_INFERENCE_MODULES = ('phi', 'actor')
 CORE_TRAINING_MODULES = ('critic', 'critic_target', 'phi_target')
@@ -45,7 +49,7 @@ CORE_OPTIMIZERS = ('critic_opt', 'actor_opt', 'alpha_opt')
 CORE_METRICS = ('critic_loss', 'q1', 'actor_loss', 'alpha_loss', 'alpha', 'entropy')
 
 
-def param_normaliser(train_values) -> ParamScale:
+def param_normaliser(train_values: Sequence[float | Sequence[float]]) -> ParamScale:
     """Min-max normalisation mapping the train values onto [0, 1], per parameter.
 
     `train_values`: numbers (a one-parameter family) or value tuples.
@@ -134,8 +138,8 @@ class Agent:
 
     # -- acting ----------------------------------------------------------------
     @torch.no_grad()
-    def act(self, obs, window_rows, window_mask, param=None,
-            deterministic: bool = False) -> np.ndarray:
+    def act(self, obs: np.ndarray, window_rows: np.ndarray, window_mask: np.ndarray,
+            param: ArrayLike | None = None, deterministic: bool = False) -> np.ndarray:
         """Action(s) in [-1, 1] for one observation [obs_dim] or a batch [B, obs_dim].
 
         `param`: the true parameter per row, needed only by privileged methods.
@@ -201,7 +205,7 @@ class Agent:
             self.timers[name] = self.timers.get(name, 0.0) + now - start
         return now
 
-    def _actor_step(self, z, c, c_actor) -> dict:
+    def _actor_step(self, z: torch.Tensor, c: torch.Tensor, c_actor: torch.Tensor) -> dict:
         self.critic.requires_grad_(False)
         actor_loss, alpha_loss, metrics = self.actor_and_alpha_loss(z, c, c_actor)
         self.actor_opt.zero_grad(set_to_none=True)

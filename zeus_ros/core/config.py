@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, MISSING
 import difflib
 import json
+from typing import Iterable
 
 from zeus_ros.core.methods import METHODS
 from zeus_ros.core.methods.base import MethodSettings
@@ -236,7 +237,7 @@ def unknown_key_message(key: str) -> str:
     return f'unknown config field {key!r}' + (f' (did you mean {close[0]!r}?)' if close else '')
 
 
-def refuse_foreign_keys(method: str, keys) -> None:
+def refuse_foreign_keys(method: str, keys: Iterable[str]) -> None:
     """Raise ValueError naming the first key that is neither shared nor `method`'s own."""
     mine = set(SHARED_KEYS) | set(settings_fields(method))
     for key in keys:

@@ -21,6 +21,7 @@ window there, as an episode start does.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -86,8 +87,8 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs, action, reward, next_obs, done, task: int, param,
-            continues: bool) -> None:
+    def add(self, obs: np.ndarray, action: np.ndarray, reward: float, next_obs: np.ndarray,
+            done: bool, task: int, param: float | Sequence[float], continues: bool) -> None:
         """Store one transition.
 
         `param`: the true value(s) in force (a number, or a tuple for a family

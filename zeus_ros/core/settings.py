@@ -14,20 +14,23 @@ import argparse
 from dataclasses import Field, field, fields, MISSING
 import types
 import typing
+from typing import Callable, Container
 
 
-def setting(default=MISSING, help_text: str = '', **cli) -> Field:
+# `default` is any value a field may hold (MISSING: none).
+def setting(default: object = MISSING, help_text: str = '', **cli) -> Field:
     """Return a dataclass field with its help string; `cli` goes to argparse (choices, ...)."""
     return field(default=default, metadata={'help': help_text, 'cli': cli})
 
 
-def field_types(cls) -> dict[str, type]:
+def field_types(cls: type) -> dict[str, type]:
     """Return each field's value type (`int | None` -> int, `tuple[str, ...]` -> tuple)."""
     hints = typing.get_type_hints(cls)
     return {f.name: plain_type(hints[f.name]) for f in fields(cls)}
 
 
-def plain_type(kind) -> type:
+# `kind` is a type hint as get_type_hints returns it: a class, a union, a generic alias.
+def plain_type(kind: object) -> type:
     """Return the type a value is parsed as: the non-None member of an optional, the origin."""
     if typing.get_origin(kind) in (typing.Union, types.UnionType):
         kind = next(a for a in typing.get_args(kind) if a is not type(None))
@@ -61,7 +64,9 @@ def describe_default(f: Field) -> str:
     return repr(f.default)
 
 
-def add_arguments(parser, cls, *, skip=(), only=None, note=None,
+def add_arguments(parser: argparse._ActionsContainer, cls: type, *, skip: Container[str] = (),
+                  only: Container[str] | None = None,
+                  note: Callable[[str], str] | None = None,
                   keep_defaults: bool = True) -> None:
     """Add one option per field of `cls` to `parser` (a parser or an argument group).
 
@@ -83,7 +88,8 @@ def add_arguments(parser, cls, *, skip=(), only=None, note=None,
                     options)
 
 
-def _add_option(parser, name: str, kind: type, default, help_text: str, options: dict) -> None:
+def _add_option(parser: argparse._ActionsContainer, name: str, kind: type, default: object,
+                help_text: str, options: dict) -> None:
     flag = '--' + name.replace('_', '-')
     if kind is bool:
         parser.add_argument(flag, dest=name, action=argparse.BooleanOptionalAction,

@@ -55,7 +55,7 @@ class ContextWindow:
         self._next = 0
         self.fill = 0
 
-    def push(self, s, a, r, s_next) -> None:
+    def push(self, s: np.ndarray, a: np.ndarray, r: float, s_next: np.ndarray) -> None:
         """Append the transition (s, a, r, s') of the current episode."""
         s = np.asarray(s, dtype=np.float64).reshape(-1)
         a = np.asarray(a, dtype=np.float64).reshape(-1)

@@ -17,11 +17,14 @@ shared config; the metrics its `update` returns are named in `metric_names`
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar, Iterable, Protocol, Sequence, TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import nn
+
+if TYPE_CHECKING:
+    from zeus_ros.core.replay import Batch
 
 
 @dataclass(frozen=True)
@@ -59,7 +62,8 @@ class ParamScale:
         """How many parameters the family varies."""
         return len(self.offset)
 
-    def as_rows(self, value) -> torch.Tensor:
+    def as_rows(self, value: torch.Tensor | np.ndarray | float | Sequence[float]
+                ) -> torch.Tensor:
         """Parameters as a float32 [B, param_dim] tensor (from [B], [B, P] or one row)."""
         return torch.as_tensor(value, dtype=torch.float32).reshape(-1, self.param_dim)
 
@@ -67,7 +71,7 @@ class ParamScale:
         """Physical values [B, P] -> normalised (train values span [0, 1] per parameter)."""
         return (value - value.new_tensor(self.offset)) / value.new_tensor(self.scale)
 
-    def physical(self, normalised) -> np.ndarray:
+    def physical(self, normalised: np.ndarray) -> np.ndarray:
         """Normalised values [..., P] (numpy) -> physical values."""
         return normalised * np.asarray(self.scale) + np.asarray(self.offset)
 
@@ -90,7 +94,52 @@ class MethodSettings:
         return self
 
 
-def adam(params, lr: float, betas=(0.9, 0.999)) -> torch.optim.Adam:
+class MethodConfig(Protocol):
+    """The fields of the run's config a method reads: a zeus_ros.core.config.ZeusConfig.
+
+    A protocol, not that class: config imports this registry to check a
+    config's method, so the methods only read the config they get.
+    """
+
+    @property
+    def method_settings(self) -> MethodSettings | None: ...
+
+    @property
+    def feature_dim(self) -> int: ...
+
+    @property
+    def context_dim(self) -> int: ...
+
+    @property
+    def context_hidden(self) -> int: ...
+
+    @property
+    def context_layers(self) -> int: ...
+
+    @property
+    def aggregation(self) -> str: ...
+
+    @property
+    def alpha_psi(self) -> float: ...
+
+    @property
+    def dynamics_hidden(self) -> int: ...
+
+    @property
+    def dynamics_layers(self) -> int: ...
+
+    @property
+    def model_lr(self) -> float: ...
+
+    @property
+    def decoder_hidden(self) -> int: ...
+
+    @property
+    def decoder_lr(self) -> float: ...
+
+
+def adam(params: Iterable[nn.Parameter], lr: float,
+         betas: tuple[float, float] = (0.9, 0.999)) -> torch.optim.Adam:
     """Adam with the fused CPU kernel: one kernel per step instead of ~10 ops a tensor.
 
     The same algorithm as the default implementation (not bit-identical to it:
@@ -130,9 +179,8 @@ class ContextMethod:
         if cls.update is not ContextMethod.update and not cls.has_own_update:
             raise TypeError(f'{cls.__name__} defines update(): set has_own_update = True')
 
-    # `cfg` is a zeus_ros.core.config.ZeusConfig, not imported: config imports this
-    # registry to check a config's method, so the methods only read the config they get.
-    def __init__(self, cfg: Any, dims: Dims, param: ParamScale, training: bool = True):
+    def __init__(self, cfg: MethodConfig, dims: Dims, param: ParamScale,
+                 training: bool = True):
         self.cfg, self.dims, self.param = cfg, dims, param
         if not isinstance(cfg.method_settings, self.settings_class):
             raise TypeError(f'{self.name} reads {self.settings_class.__name__}, got '
@@ -168,7 +216,7 @@ class ContextMethod:
         """Latent context [B, context_dim] of windows rows [B, k, D], mask [B, k]."""
         return rows.new_zeros((rows.shape[0], 0))
 
-    def encode_pair(self, batch, grad: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode_pair(self, batch: Batch, grad: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """Latents of the batch's windows before s_t and before s_{t+1} (the critic's).
 
         The first keeps its graph when `grad` (the critic trains the encoder),
@@ -181,7 +229,7 @@ class ContextMethod:
             current = self.encode(batch.ctx_rows, batch.ctx_mask, batch.param)
         return current, following
 
-    def actor_context(self, batch, critic_latent: torch.Tensor,  # noqa: ARG002
+    def actor_context(self, batch: Batch, critic_latent: torch.Tensor,  # noqa: ARG002
                       following: bool = False) -> torch.Tensor:  # noqa: ARG002
         """Latent the ACTOR reads in the losses (before s_{t+1} if `following`): the critic's.
 
@@ -191,15 +239,18 @@ class ContextMethod:
         """
         return critic_latent
 
-    def acting_context(self, rows, mask, param) -> torch.Tensor:
+    def acting_context(self, rows: torch.Tensor, mask: torch.Tensor,
+                       param: torch.Tensor | None) -> torch.Tensor:
         """Latent the trainer acts on while collecting (UP-OSI switches to its estimate)."""
         return self.encode(rows, mask, param)
 
-    def deployed_context(self, rows, mask, param) -> torch.Tensor:
+    def deployed_context(self, rows: torch.Tensor, mask: torch.Tensor,
+                         param: torch.Tensor | None) -> torch.Tensor:
         """Latent a deployed policy acts on (evaluation, the ROS nodes)."""
         return self.encode(rows, mask, param)
 
-    def encode_target(self, rows, mask, param) -> torch.Tensor:
+    def encode_target(self, rows: torch.Tensor, mask: torch.Tensor,
+                      param: torch.Tensor | None) -> torch.Tensor:
         """Latent for the TD target (a slow copy where the critic trains the encoder)."""
         with torch.no_grad():
             return self.encode(rows, mask, param)
@@ -207,7 +258,7 @@ class ContextMethod:
     def update_targets(self, tau: float) -> None:
         """Move the method's target networks (if any) towards the online ones."""
 
-    def update(self, batch,  # noqa: ARG002
+    def update(self, batch: Batch,  # noqa: ARG002
                z: torch.Tensor, step: int) -> dict[str, torch.Tensor]:  # noqa: ARG002
         """Run the method's own losses and optimiser steps; `z` = phi(s), detached."""
         return {}

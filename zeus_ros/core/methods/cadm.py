@@ -15,11 +15,15 @@ permutation-invariant window, the aggregation choices shared by all methods.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from zeus_ros.core.methods.common import (EncoderMethod, EncoderSettings, gaussian_nll,
                                           ModelLoss)
 from zeus_ros.core.networks import GaussianModel
 from zeus_ros.core.settings import setting
+
+if TYPE_CHECKING:
+    from zeus_ros.core.replay import Batch
 
 
 @dataclass(frozen=True)
@@ -50,7 +54,7 @@ class CadmMethod(EncoderMethod):
         return {name: GaussianModel(o, a, cfg.context_dim, cfg.dynamics_hidden,
                                     cfg.dynamics_layers) for name in ('T_forward', 'T_backward')}
 
-    def model_loss(self, b) -> ModelLoss:
+    def model_loss(self, b: Batch) -> ModelLoss:
         x, delta = self.standardised_step(b)
         # s' standardised like s (the row standardiser's statistics of s).
         o, norm = self.dims.obs_dim, self.psi.norm

@@ -16,14 +16,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import adam, ContextMethod, MethodSettings
+from zeus_ros.core.methods.base import (adam, ContextMethod, Dims, MethodConfig, MethodSettings,
+                                        ParamScale)
 from zeus_ros.core.networks import ContextEncoder, ParamDecoder, weight_init
 from zeus_ros.core.settings import setting
+
+if TYPE_CHECKING:
+    from zeus_ros.core.replay import Batch
 
 CONTEXT_INPUTS = ('transition', 'delta')
 CONTEXT_ENCODERS = ('deepset', 'relational', 'temporal')
@@ -65,13 +70,15 @@ def safe_norm(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     return (x.pow(2).sum(-1) + eps).sqrt()
 
 
-def w2_diag_gaussians(mu1, log_std1, mu2, log_std2) -> torch.Tensor:
+def w2_diag_gaussians(mu1: torch.Tensor, log_std1: torch.Tensor, mu2: torch.Tensor,
+                      log_std2: torch.Tensor) -> torch.Tensor:
     """2-Wasserstein distance between diagonal Gaussians (closed form), per row."""
     sq = (mu1 - mu2).pow(2).sum(-1) + (log_std1.exp() - log_std2.exp()).pow(2).sum(-1)
     return sq.sqrt()
 
 
-def gaussian_nll(mu, log_std, target) -> torch.Tensor:
+def gaussian_nll(mu: torch.Tensor, log_std: torch.Tensor,
+                 target: torch.Tensor) -> torch.Tensor:
     """Mean over the batch of the diagonal-Gaussian negative log-likelihood (no constant)."""
     diff = (target - mu) / log_std.exp()
     return (0.5 * diff.pow(2) + log_std).sum(-1).mean()
@@ -118,7 +125,7 @@ class StandardisedContextEncoder(nn.Module):
     cannot. Still invariant to the order of the rows and to the padding.
     """
 
-    def __init__(self, obs_dim: int, row_dim: int, cfg, settings: EncoderSettings,
+    def __init__(self, obs_dim: int, row_dim: int, cfg: MethodConfig, settings: EncoderSettings,
                  out_dim: int | None = None):
         super().__init__()
         self.obs_dim = obs_dim
@@ -142,7 +149,7 @@ class StandardisedContextEncoder(nn.Module):
         """Return what psi reads of each row, before standardising."""
         return transition_features(rows, self.obs_dim, self.delta)
 
-    def window_pair(self, chain_rows, chain_mask,
+    def window_pair(self, chain_rows: torch.Tensor, chain_mask: torch.Tensor,
                     grad: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Both windows' latents from one pass over a chain (see ContextEncoder.window_pair).
 
@@ -201,7 +208,8 @@ class EncoderMethod(ContextMethod):
     has_decoder = True
     settings_class = EncoderSettings
 
-    def __init__(self, cfg, dims, param, training=True):
+    def __init__(self, cfg: MethodConfig, dims: Dims, param: ParamScale,
+                 training: bool = True):
         super().__init__(cfg, dims, param, training)
         self.psi = StandardisedContextEncoder(dims.obs_dim, dims.row_dim, cfg, self.settings,
                                               self.encoder_dim)
@@ -223,7 +231,7 @@ class EncoderMethod(ContextMethod):
         """Build the method's training-only networks, by checkpoint prefix."""
         return {}
 
-    def model_loss(self, b) -> ModelLoss:
+    def model_loss(self, b: Batch) -> ModelLoss:
         """Return (loss, latent of the batch's windows, metrics) of the method's objective."""
         raise NotImplementedError
 
@@ -256,17 +264,18 @@ class EncoderMethod(ContextMethod):
     def encoder_parameters(self) -> list[nn.Parameter]:
         return list(self.psi.parameters())
 
-    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def encode(self, rows: torch.Tensor, mask: torch.Tensor,
+               param: torch.Tensor | None) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         return self.psi(rows, mask)
 
-    def encode_pair(self, batch, grad) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode_pair(self, batch: Batch, grad: bool) -> tuple[torch.Tensor, torch.Tensor]:
         pair = self.psi.window_pair(batch.chain_rows, batch.chain_mask, grad)
         return pair if pair is not None else super().encode_pair(batch, grad)
 
-    def decode(self, latent) -> torch.Tensor:
+    def decode(self, latent: torch.Tensor) -> torch.Tensor:
         return self.decoder(latent)
 
-    def standardised_step(self, b) -> tuple[torch.Tensor, torch.Tensor]:
+    def standardised_step(self, b: Batch) -> tuple[torch.Tensor, torch.Tensor]:
         """Standardised s and s' - s of the batch's own transitions (no gradient)."""
         o = self.dims.obs_dim
         row = torch.cat([b.obs, b.action, b.reward[:, None], b.next_obs], dim=-1)
@@ -276,7 +285,8 @@ class EncoderMethod(ContextMethod):
         delta = b.next_obs - b.obs   # raw-row ablation: scale the delta by its batch std
         return feats[:, :o], delta / (delta.std(0) + 1e-4)
 
-    def update(self, batch, z, step) -> dict[str, torch.Tensor]:  # noqa: ARG002 (ContextMethod's signature)
+    def update(self, batch: Batch, z: torch.Tensor, step: int,  # noqa: ARG002 (ContextMethod's signature)
+               ) -> dict[str, torch.Tensor]:
         valid_rows = batch.ctx_rows[batch.ctx_mask]
         if valid_rows.shape[0] > 1:
             self.psi.norm.observe(self.psi.features(valid_rows))
@@ -294,7 +304,7 @@ class EncoderMethod(ContextMethod):
         self._step(loss, decoder_loss)
         return metrics
 
-    def _step(self, loss, decoder_loss) -> None:
+    def _step(self, loss: torch.Tensor, decoder_loss: torch.Tensor | None) -> None:
         self.model_opt.zero_grad(set_to_none=True)
         if decoder_loss is None:
             loss.backward()

@@ -13,6 +13,7 @@ public code was found; this follows the paper's description.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -21,6 +22,9 @@ from zeus_ros.core.methods.common import (EncoderMethod, EncoderSettings, gaussi
                                           ModelLoss)
 from zeus_ros.core.networks import mlp
 from zeus_ros.core.settings import setting
+
+if TYPE_CHECKING:
+    from zeus_ros.core.replay import Batch
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,7 @@ class HyperDynamicsMethod(EncoderMethod):
         return {'hyper': HyperNetwork(cfg.context_dim, o + a, self.settings.hyper_model_hidden, o,
                                       cfg.dynamics_hidden)}
 
-    def model_loss(self, b) -> ModelLoss:
+    def model_loss(self, b: Batch) -> ModelLoss:
         x, delta = self.standardised_step(b)
         c = self.psi(b.ctx_rows, b.ctx_mask)
         mu, log_std = self.models['hyper'](c, torch.cat([x, b.action], dim=-1))

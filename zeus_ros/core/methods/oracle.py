@@ -26,10 +26,11 @@ class OracleMethod(ContextMethod):
     def context_dim(self) -> int:
         return self.param.param_dim
 
-    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def encode(self, rows: torch.Tensor, mask: torch.Tensor,  # noqa: ARG002 (ContextMethod's signature)
+               param: torch.Tensor | None) -> torch.Tensor:
         if param is None:
             raise ValueError('the oracle method needs the true parameter')
         return self.param.normalise(self.param.as_rows(param))
 
-    def decode(self, latent) -> torch.Tensor:
+    def decode(self, latent: torch.Tensor) -> torch.Tensor:
         return latent

@@ -25,14 +25,18 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import ContextMethod
+from zeus_ros.core.methods.base import ContextMethod, Dims, MethodConfig, ParamScale
 from zeus_ros.core.methods.common import EncoderMethod, EncoderSettings, ModelLoss
 from zeus_ros.core.networks import mlp, run_mlp, weight_init
 from zeus_ros.core.settings import setting
+
+if TYPE_CHECKING:
+    from zeus_ros.core.replay import Batch
 
 
 @dataclass(frozen=True)
@@ -71,7 +75,8 @@ class RmaMethod(EncoderMethod):
     settings_class = RmaSettings
     metric_names = ('adaptation_loss', 'decoder_loss')
 
-    def __init__(self, cfg, dims, param, training=True):
+    def __init__(self, cfg: MethodConfig, dims: Dims, param: ParamScale,
+                 training: bool = True):
         super().__init__(cfg, dims, param, training)
         # Built in both modes: deployed weights carry mu, so a report can act as the teacher.
         self.mu = mlp(param.param_dim, cfg.decoder_hidden, cfg.context_dim, 1) \
@@ -94,12 +99,13 @@ class RmaMethod(EncoderMethod):
     def inference_modules(self) -> dict[str, torch.nn.Module]:
         return {**super().inference_modules(), **({'mu': self.mu} if self.mu else {})}
 
-    def teacher(self, param) -> torch.Tensor:
+    def teacher(self, param: torch.Tensor) -> torch.Tensor:
         """Return the privileged extrinsics z of true parameters [B, P] (physical units)."""
         e = self.param.normalise(self.param.as_rows(param))
         return e if self.mu is None else run_mlp(self.mu, e)
 
-    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def encode(self, rows: torch.Tensor, mask: torch.Tensor,  # noqa: ARG002 (ContextMethod's signature)
+               param: torch.Tensor | None) -> torch.Tensor:
         if param is None:
             raise ValueError('the rma teacher is trained on the true parameter: pass it')
         return self.teacher(param)
@@ -107,15 +113,18 @@ class RmaMethod(EncoderMethod):
     # In training the latent is the teacher's, not psi's: no codes to share.
     encode_pair = ContextMethod.encode_pair
 
-    def acting_context(self, rows, mask, param) -> torch.Tensor:
+    def acting_context(self, rows: torch.Tensor, mask: torch.Tensor,
+                       param: torch.Tensor | None) -> torch.Tensor:
         if param is not None and self.updates < self.settings.rma_student_after_updates:
             return self.encode(rows, mask, param)
         return self.psi(rows, mask)
 
-    def deployed_context(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def deployed_context(self, rows: torch.Tensor, mask: torch.Tensor,
+                         param: torch.Tensor | None) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         return self.psi(rows, mask)
 
-    def actor_context(self, batch, critic_latent, following=False) -> torch.Tensor:
+    def actor_context(self, batch: Batch, critic_latent: torch.Tensor,
+                      following: bool = False) -> torch.Tensor:
         if not (self.settings.rma_asymmetric
                 and self.updates >= self.settings.rma_student_after_updates):
             return critic_latent
@@ -124,11 +133,11 @@ class RmaMethod(EncoderMethod):
                 return self.psi(batch.next_ctx_rows, batch.next_ctx_mask)
             return self.psi(batch.ctx_rows, batch.ctx_mask)
 
-    def model_loss(self, b) -> ModelLoss:
+    def model_loss(self, b: Batch) -> ModelLoss:
         estimate = self.psi(b.ctx_rows, b.ctx_mask)
         loss = F.mse_loss(estimate, self.teacher(b.param).detach())
         return loss, estimate, {'adaptation_loss': loss.detach()}
 
-    def update(self, batch, z, step) -> dict[str, torch.Tensor]:
+    def update(self, batch: Batch, z: torch.Tensor, step: int) -> dict[str, torch.Tensor]:
         self.updates = step   # the agent's update count: a resumed run stays in its phase
         return super().update(batch, z, step)

@@ -20,12 +20,14 @@ from typing import TYPE_CHECKING
 
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import ContextMethod
+from zeus_ros.core.methods.base import ContextMethod, Dims, MethodConfig, ParamScale
 from zeus_ros.core.methods.common import EncoderMethod, EncoderSettings, ModelLoss
 from zeus_ros.core.settings import setting
 
 if TYPE_CHECKING:
     import torch
+
+    from zeus_ros.core.replay import Batch
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,8 @@ class UpOsiMethod(EncoderMethod):
     settings_class = UpOsiSettings
     metric_names = ('osi_loss',)
 
-    def __init__(self, cfg, dims, param, training=True):
+    def __init__(self, cfg: MethodConfig, dims: Dims, param: ParamScale,
+                 training: bool = True):
         super().__init__(cfg, dims, param, training)
         self.updates = 0
 
@@ -64,7 +67,8 @@ class UpOsiMethod(EncoderMethod):
     def critic_trains_context(self) -> bool:
         return False
 
-    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def encode(self, rows: torch.Tensor, mask: torch.Tensor,  # noqa: ARG002 (ContextMethod's signature)
+               param: torch.Tensor | None) -> torch.Tensor:
         if param is None:
             raise ValueError('UP is trained on the true parameter: pass it')
         return self.param.normalise(self.param.as_rows(param))
@@ -72,22 +76,24 @@ class UpOsiMethod(EncoderMethod):
     # In training the latent is the true parameter, not psi's: no codes to share.
     encode_pair = ContextMethod.encode_pair
 
-    def acting_context(self, rows, mask, param) -> torch.Tensor:
+    def acting_context(self, rows: torch.Tensor, mask: torch.Tensor,
+                       param: torch.Tensor | None) -> torch.Tensor:
         if param is not None and self.updates < self.settings.osi_warmup_updates:
             return self.encode(rows, mask, param)
         return self.psi(rows, mask)
 
-    def deployed_context(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def deployed_context(self, rows: torch.Tensor, mask: torch.Tensor,
+                         param: torch.Tensor | None) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         return self.psi(rows, mask)
 
-    def decode(self, latent) -> torch.Tensor:
+    def decode(self, latent: torch.Tensor) -> torch.Tensor:
         return latent
 
-    def model_loss(self, b) -> ModelLoss:
+    def model_loss(self, b: Batch) -> ModelLoss:
         estimate = self.psi(b.ctx_rows, b.ctx_mask)
         loss = F.mse_loss(estimate, self.param.normalise(b.param))
         return loss, estimate, {'osi_loss': loss.detach()}
 
-    def update(self, batch, z, step) -> dict[str, torch.Tensor]:
+    def update(self, batch: Batch, z: torch.Tensor, step: int) -> dict[str, torch.Tensor]:
         self.updates = step   # the agent's update count: a resumed run keeps its warm-up done
         return super().update(batch, z, step)

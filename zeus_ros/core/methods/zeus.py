@@ -18,15 +18,20 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 
-from zeus_ros.core.methods.base import adam, ContextMethod, MethodSettings, soft_update
+from zeus_ros.core.methods.base import (adam, ContextMethod, Dims, MethodConfig, MethodSettings,
+                                        ParamScale, soft_update)
 from zeus_ros.core.methods.common import gaussian_nll, ModelLoss, safe_norm, w2_diag_gaussians
 from zeus_ros.core.networks import (ContextEncoder, GaussianModel, ParamDecoder, RewardModel,
                                     weight_init)
 from zeus_ros.core.settings import setting
+
+if TYPE_CHECKING:
+    from zeus_ros.core.replay import Batch
 
 DYNAMICS_LOSSES = ('nll', 'mse')
 
@@ -54,7 +59,8 @@ class ZeusMethod(ContextMethod):
     settings_class = ZeusSettings
     metric_names = ('dynamics_loss', 'reward_loss', 'context_loss', 'decoder_loss')
 
-    def __init__(self, cfg, dims, param, training=True):
+    def __init__(self, cfg: MethodConfig, dims: Dims, param: ParamScale,
+                 training: bool = True):
         super().__init__(cfg, dims, param, training)
         self.psi = ContextEncoder(dims.row_dim, cfg.context_dim, cfg.context_hidden,
                                   cfg.context_layers, cfg.aggregation)
@@ -90,26 +96,29 @@ class ZeusMethod(ContextMethod):
     def encoder_parameters(self) -> list[torch.nn.Parameter]:
         return list(self.psi.parameters())
 
-    def encode(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def encode(self, rows: torch.Tensor, mask: torch.Tensor,
+               param: torch.Tensor | None) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         return self.psi(rows, mask)
 
-    def encode_pair(self, batch, grad) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode_pair(self, batch: Batch, grad: bool) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.set_grad_enabled(grad):   # one pass over the k + 1 rows of both windows
             codes = self.psi.codes(batch.chain_rows)
         return self.psi.window_pair(codes, batch.chain_mask, grad)
 
-    def encode_target(self, rows, mask, param) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
+    def encode_target(self, rows: torch.Tensor, mask: torch.Tensor,
+                      param: torch.Tensor | None) -> torch.Tensor:  # noqa: ARG002 (ContextMethod's signature)
         with torch.no_grad():
             return self.psi_target(rows, mask)
 
-    def update_targets(self, tau) -> None:
+    def update_targets(self, tau: float) -> None:
         soft_update(self.psi, self.psi_target, tau)
 
-    def decode(self, latent) -> torch.Tensor:
+    def decode(self, latent: torch.Tensor) -> torch.Tensor:
         return self.decoder(latent)
 
     # -- Equation 2 ------------------------------------------------------------
-    def context_target(self, z, a, c1, c2) -> torch.Tensor:
+    def context_target(self, z: torch.Tensor, a: torch.Tensor, c1: torch.Tensor,
+                       c2: torch.Tensor) -> torch.Tensor:
         """d(c1, c2) from the learned R and T at the same (z, a); no gradient."""
         with torch.no_grad():
             r1, r2 = self.R(z, a, c1), self.R(z, a, c2)
@@ -117,13 +126,15 @@ class ZeusMethod(ContextMethod):
             mu2, ls2 = self.T(z, a, c2)
             return (r1 - r2).abs() + w2_diag_gaussians(mu1, ls1, mu2, ls2)
 
-    def context_loss(self, z, a, c, perm) -> torch.Tensor:
+    def context_loss(self, z: torch.Tensor, a: torch.Tensor, c: torch.Tensor,
+                     perm: torch.Tensor) -> torch.Tensor:
         """MSE(||c - c[perm]||, d): only psi (through `c`) receives gradients."""
         c2 = c[perm]
         target = self.context_target(z, a, c.detach(), c2.detach())
         return F.mse_loss(safe_norm(c - c2), target)
 
-    def model_loss(self, b, z, perm=None) -> ModelLoss:
+    def model_loss(self, b: Batch, z: torch.Tensor,
+                   perm: torch.Tensor | None = None) -> ModelLoss:
         """Equation 2: alpha_psi * context loss + dynamics + reward; trains psi, T, R."""
         with torch.no_grad():
             zn = self.phi(b.next_obs)      # stop-gradient dynamics target
@@ -142,11 +153,12 @@ class ZeusMethod(ContextMethod):
             metrics['context_loss'] = ctx.detach()
         return loss, c, metrics
 
-    def decoder_loss(self, c, param) -> torch.Tensor:
+    def decoder_loss(self, c: torch.Tensor, param: torch.Tensor) -> torch.Tensor:
         """MSE of the decoder on the DETACHED latent against the normalised parameter."""
         return F.mse_loss(self.decoder(c.detach()), self.param.normalise(param))
 
-    def update(self, batch, z, step) -> dict[str, torch.Tensor]:  # noqa: ARG002 (ContextMethod's signature)
+    def update(self, batch: Batch, z: torch.Tensor, step: int,  # noqa: ARG002 (ContextMethod's signature)
+               ) -> dict[str, torch.Tensor]:
         loss, c, metrics = self.model_loss(batch, z)
         self.model_opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -165,7 +177,8 @@ class ZeusNoContextLoss(ZeusMethod):
     name = 'zeus-no-context-loss'
     config_defaults = {'alpha_psi': 0.0}
 
-    def model_loss(self, b, z, perm=None) -> ModelLoss:
+    def model_loss(self, b: Batch, z: torch.Tensor,
+                   perm: torch.Tensor | None = None) -> ModelLoss:
         if self.cfg.alpha_psi != 0:
             raise ValueError('zeus-no-context-loss trains with alpha_psi = 0')
         return super().model_loss(b, z, perm)

@@ -35,6 +35,7 @@ at the same (x, a), under no_grad. The decoder reads the DETACHED latent.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -44,6 +45,9 @@ from zeus_ros.core.methods.common import (EncoderMethod, EncoderSettings, gaussi
                                           w2_diag_gaussians)
 from zeus_ros.core.networks import GaussianModel, RewardModel
 from zeus_ros.core.settings import setting
+
+if TYPE_CHECKING:
+    from zeus_ros.core.replay import Batch
 
 __all__ = ['ZeusIdMethod', 'ZeusIdSettings', 'transition_features']
 
@@ -74,7 +78,8 @@ class ZeusIdMethod(EncoderMethod):
                 'R': RewardModel(o, a, cfg.context_dim, cfg.dynamics_hidden,
                                  cfg.dynamics_layers)}
 
-    def context_loss(self, x, a, c, perm) -> torch.Tensor:
+    def context_loss(self, x: torch.Tensor, a: torch.Tensor, c: torch.Tensor,
+                     perm: torch.Tensor) -> torch.Tensor:
         """MSE between latent distances and the task metric, each over its batch mean."""
         T, R = self.models['T'], self.models['R']
         c2 = c[perm]
@@ -89,7 +94,7 @@ class ZeusIdMethod(EncoderMethod):
             dist = dist / (dist.mean().detach() + 1e-6)
         return F.mse_loss(dist, d)
 
-    def model_loss(self, b, perm=None) -> ModelLoss:
+    def model_loss(self, b: Batch, perm: torch.Tensor | None = None) -> ModelLoss:
         """NLL of standardised s' - s, MSE of r, alpha_psi * context loss; trains psi, T, R."""
         x, delta = self.standardised_step(b)
         c = self.psi(b.ctx_rows, b.ctx_mask)

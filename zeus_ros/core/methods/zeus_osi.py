@@ -30,6 +30,9 @@ from zeus_ros.core.methods.zeus_id import ZeusIdMethod
 if TYPE_CHECKING:
     import torch
 
+    from zeus_ros.core.methods.base import Dims, MethodConfig, ParamScale
+    from zeus_ros.core.replay import Batch
+
 
 class ZeusOsiMethod(ZeusIdMethod):
     """zeus-id whose latent's first P coordinates are the parameter estimate itself."""
@@ -37,7 +40,8 @@ class ZeusOsiMethod(ZeusIdMethod):
     name = 'zeus-osi'
     has_decoder = False
 
-    def __init__(self, cfg, dims, param, training=True):
+    def __init__(self, cfg: MethodConfig, dims: Dims, param: ParamScale,
+                 training: bool = True):
         if cfg.method_settings.id_weight <= 0:
             raise ValueError('zeus-osi reads its estimate from the latent: it needs '
                              'id_weight > 0 (the regression that makes those coordinates '
@@ -47,10 +51,10 @@ class ZeusOsiMethod(ZeusIdMethod):
                              'plus at least one free coordinate)')
         super().__init__(cfg, dims, param, training)
 
-    def decode(self, latent) -> torch.Tensor:
+    def decode(self, latent: torch.Tensor) -> torch.Tensor:
         return latent[..., :self.param.param_dim]
 
-    def model_loss(self, b, perm=None) -> ModelLoss:
+    def model_loss(self, b: Batch, perm: torch.Tensor | None = None) -> ModelLoss:
         """zeus-id's loss plus id_weight * MSE(first P latent coordinates, parameter)."""
         loss, c, metrics = super().model_loss(b, perm)
         id_loss = F.mse_loss(self.decode(c), self.param.normalise(b.param))

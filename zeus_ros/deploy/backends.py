@@ -8,13 +8,18 @@ on `inference`'s `DeployedModel`, and this module picks between them.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from zeus_ros.deploy.inference import DeployedModel, InferenceModel
+
+if TYPE_CHECKING:
+    from pathlib import Path
 
 # The `backend` a controller node (or `load_deployed`) accepts.
 BACKENDS = ('torch', 'onnx')
 
 
-def load_deployed(path, backend: str = 'torch', **checks) -> DeployedModel:
+def load_deployed(path: str | Path, backend: str = 'torch', **checks) -> DeployedModel:
     """Load a checkpoint for `backend` ('torch' or 'onnx'); `checks` as InferenceModel.load."""
     if backend == 'torch':
         return InferenceModel.load(path, **checks)

@@ -34,7 +34,7 @@ from pathlib import Path
 import shutil
 import subprocess
 import time
-from typing import TYPE_CHECKING
+from typing import Sequence, TYPE_CHECKING
 
 import numpy as np
 from safetensors import SafetensorError
@@ -48,7 +48,9 @@ from zeus_ros.deploy.metadata import (ActionLayoutMeta, CheckpointMetadata, CONF
                                       RunMeta, StepsMeta, WIDTH)
 
 if TYPE_CHECKING:
-    from zeus_ros.core.methods import ContextMethod
+    from zeus_ros.core.agent import Agent
+    from zeus_ros.core.methods import ContextMethod, ParamScale
+    from zeus_ros.core.replay import ReplayBuffer
 
 MODEL_FILE = 'model.safetensors'
 STATE_FILE = 'training_state.safetensors'
@@ -91,7 +93,7 @@ def git_commit(repo: Path | None = None) -> str:
         return 'unknown'
 
 
-def resolve_dir(path) -> Path:
+def resolve_dir(path: str | Path) -> Path:
     """Accept a checkpoint directory or a run directory holding `checkpoint/`."""
     path = Path(path)
     if (path / METADATA_FILE).exists():
@@ -102,7 +104,7 @@ def resolve_dir(path) -> Path:
                           f'(neither in it nor in {path / "checkpoint"})')
 
 
-def _bytes_tensor(obj) -> torch.Tensor:
+def _bytes_tensor(obj: object) -> torch.Tensor:   # any value json.dumps takes
     data = json.dumps(obj).encode()
     return torch.tensor(list(data), dtype=torch.uint8)
 
@@ -139,7 +141,7 @@ def _load_optimizer(name: str, opt: torch.optim.Optimizer, tensors: dict) -> Non
     opt.load_state_dict(sd)
 
 
-def build_metadata(agent, env_info: dict, counters: dict, run: dict | None = None,
+def build_metadata(agent: Agent, env_info: dict, counters: dict, run: dict | None = None,
                    wall_s: float | None = None) -> CheckpointMetadata:
     """Metadata (without the files' hashes) of an agent and its environment.
 
@@ -174,8 +176,9 @@ def write_metadata(directory: Path, meta: CheckpointMetadata) -> None:
     (Path(directory) / METADATA_FILE).write_text(meta.to_json())
 
 
-def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dict | None = None,
-                    replay=None, run: dict | None = None, wall_s: float | None = None) -> Path:
+def save_checkpoint(path: str | Path, agent: Agent, env_info: dict, counters: dict,
+                    rng_states: dict | None = None, replay: ReplayBuffer | None = None,
+                    run: dict | None = None, wall_s: float | None = None) -> Path:
     """Write a checkpoint directory atomically (temp dir, then rename); return its path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -215,7 +218,8 @@ def save_checkpoint(path, agent, env_info: dict, counters: dict, rng_states: dic
     return path
 
 
-def load_metadata(path, expected_family: str | None = None, obs_dim: int | None = None,
+def load_metadata(path: str | Path, expected_family: str | None = None,
+                  obs_dim: int | None = None,
                   action_dim: int | None = None) -> CheckpointMetadata:
     """Read and check metadata.json; raise CheckpointError on any problem."""
     path = resolve_dir(path)
@@ -249,7 +253,8 @@ def _obs_layout(obs_dim: int, env_info: dict) -> ObsLayoutMeta:
                          None if velocities is None else tuple(velocities))
 
 
-def _normalisation(param, train_values) -> ParamNormMeta:
+def _normalisation(param: ParamScale,
+                   train_values: Sequence[float | Sequence[float]]) -> ParamNormMeta:
     """Return the normalisation: offset and scale numbers for one parameter, else lists."""
     values = tuple(v if isinstance(v, float | int) else tuple(v) for v in train_values)
     if param.param_dim == 1:
@@ -305,7 +310,7 @@ def _refuse_non_finite(tensors: dict, source: str) -> None:
         raise CheckpointError(f'{source}: non-finite values in {bad[:4]}')
 
 
-def load_model(path, expected_family: str | None = None, obs_dim: int | None = None,
+def load_model(path: str | Path, expected_family: str | None = None, obs_dim: int | None = None,
                action_dim: int | None = None,
                ) -> tuple[CheckpointMetadata, ContextMethod, dict[str, torch.nn.Module]]:
     """Load (metadata, method, inference modules dict) after every check.
@@ -394,7 +399,8 @@ def _suspects(meta: CheckpointMetadata, cfg: ZeusConfig, want: dict, wrong: set)
     return sorted(scores, key=scores.get, reverse=True)[:3] or ['config']
 
 
-def load_training_checkpoint(path, agent, replay=None) -> dict:
+def load_training_checkpoint(path: str | Path, agent: Agent,
+                             replay: ReplayBuffer | None = None) -> dict:
     """Restore an agent (and replay buffer) for resuming; returns counters and RNG states."""
     path = resolve_dir(path)
     meta = load_metadata(path, agent.config.family, agent.obs_dim, agent.action_dim)

@@ -25,12 +25,19 @@ exported, in ONNX Runtime. `zeus_ros.deploy.backends.load_deployed` picks one.
 from __future__ import annotations
 
 import math
+from typing import Sequence, TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from zeus_ros.deploy.checkpoint import build_metadata, load_model
 from zeus_ros.deploy.metadata import CheckpointMetadata
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from zeus_ros.core.agent import Agent
+    from zeus_ros.core.methods import ContextMethod
 
 
 def _single_thread() -> None:
@@ -65,7 +72,7 @@ class DeployedModel:
         self.param_scale = np.asarray(self.meta.param_normalisation.scales)
 
     def context(self, rows: np.ndarray, mask: np.ndarray,
-                true_param=None) -> np.ndarray:
+                true_param: float | Sequence[float] | np.ndarray | None = None) -> np.ndarray:
         """Latent context of one window (rows [k, row_dim], mask [k]) as float32.
 
         `true_param` (a number, or one per parameter) is read only by privileged
@@ -135,29 +142,31 @@ class DeployedModel:
 class InferenceModel(DeployedModel):
     """phi, psi, actor and decoder of a checkpoint, run in torch."""
 
-    def __init__(self, meta: CheckpointMetadata, method, modules: dict):
+    def __init__(self, meta: CheckpointMetadata, method: ContextMethod,
+                 modules: dict[str, torch.nn.Module]):
         super().__init__(meta, method.context_dim, method.needs_true_param)
         self.method = method
         self.phi = modules['phi']
         self.actor = modules['actor']
 
     @classmethod
-    def from_agent(cls, agent, env_info: dict) -> 'InferenceModel':
+    def from_agent(cls, agent: Agent, env_info: dict) -> 'InferenceModel':
         """Wrap an agent in memory in the deployed functions (the trainer's evaluation)."""
         # Checked as a file would be: what the trainer evaluates is what a loader accepts.
         meta = build_metadata(agent, env_info, {}).checked()
         return cls(meta, agent.method, agent.inference_modules())
 
     @classmethod
-    def load(cls, path, expected_family: str | None = None, obs_dim: int | None = None,
-             action_dim: int | None = None) -> 'InferenceModel':
+    def load(cls, path: str | Path, expected_family: str | None = None,
+             obs_dim: int | None = None, action_dim: int | None = None) -> 'InferenceModel':
         """Load a checkpoint directory (or a run directory holding `checkpoint/`)."""
         torch.set_num_threads(1)
         meta, method, modules = load_model(path, expected_family, obs_dim, action_dim)
         return cls(meta, method, modules)
 
     @torch.no_grad()
-    def _context(self, rows, mask, param):
+    def _context(self, rows: np.ndarray, mask: np.ndarray,
+                 param: np.ndarray | None) -> np.ndarray:
         _single_thread()
         param = None if param is None else torch.from_numpy(param)
         latent = self.method.deployed_context(torch.from_numpy(rows),
@@ -165,18 +174,18 @@ class InferenceModel(DeployedModel):
         return latent.numpy()
 
     @torch.no_grad()
-    def _features(self, obs):
+    def _features(self, obs: np.ndarray) -> np.ndarray:
         _single_thread()
         return self.phi(torch.from_numpy(obs)).numpy()
 
     @torch.no_grad()
-    def _act(self, features, latent):
+    def _act(self, features: np.ndarray, latent: np.ndarray) -> np.ndarray:
         _single_thread()
         x = torch.cat([torch.from_numpy(features), torch.from_numpy(latent)], dim=-1)
         return self.actor.mean_action(x).numpy()
 
     @torch.no_grad()
-    def _decode(self, latent):
+    def _decode(self, latent: np.ndarray) -> np.ndarray | None:
         _single_thread()
         normalised = self.method.decode(torch.from_numpy(latent))
         return None if normalised is None else normalised.numpy()

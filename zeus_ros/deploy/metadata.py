@@ -25,15 +25,15 @@ the trainer writes floats there.)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, is_dataclass, MISSING, replace
+from dataclasses import dataclass, Field, field, fields, is_dataclass, MISSING, replace
 import json
 import math
 import re
 import types
 import typing
-from typing import Annotated
+from typing import Annotated, Iterable, Sequence
 
-from sim_node.families import get_sim_family, SPLITS
+from sim_node.families import get_sim_family, LiveParam, SPLITS
 from sim_node.layout import ObservationLayout
 from sim_node.structures import DOMAIN_STRUCTURES
 from zeus_ros.core.config import config_types, SHARED_KEYS, ZeusConfig
@@ -52,7 +52,7 @@ class MetadataError(ValueError):
     """metadata.json does not follow the schema; the message names the field."""
 
 
-def shown(value) -> str:
+def shown(value: object) -> str:   # any value a refusal quotes
     """Return repr(value), cut short: a refusal stays one readable line."""
     text = repr(value)
     return text if len(text) <= 60 else f'{text[:57]}...'
@@ -66,7 +66,7 @@ class Between:
     hi: float
     lo_open: bool = False
 
-    def why_not(self, value) -> str | None:
+    def why_not(self, value: float) -> str | None:
         """Return why `value` is out of range, or None."""
         low_ok = value > self.lo if self.lo_open else value >= self.lo
         if low_ok and value <= self.hi:
@@ -256,7 +256,7 @@ class CheckpointMetadata(Section):
         return self.param_names or (self.param_name,)
 
     @classmethod
-    def parse(cls, raw) -> 'CheckpointMetadata':
+    def parse(cls, raw: dict) -> 'CheckpointMetadata':
         """Check `raw` (the JSON object) against the schema; MetadataError names the field."""
         meta = parse_section(cls, raw)
         _check_config(meta.config)
@@ -290,7 +290,8 @@ class CheckpointMetadata(Section):
             raise MetadataError(f'config: {error}') from None
 
 
-def parse_section(cls, raw, where: str = '') -> Section:
+# `raw` is whatever the JSON holds there: checking that it is an object is part of the job.
+def parse_section(cls: type[Section], raw: object, where: str = '') -> Section:
     """Build section `cls` from its JSON object, checking each field's type and range.
 
     `where` is the section's path in the file ('run.'), for the refusals.
@@ -312,13 +313,13 @@ def parse_section(cls, raw, where: str = '') -> Section:
                omitted=frozenset(known - raw.keys()))
 
 
-def _schema_fields(section) -> list:
+def _schema_fields(section: Section | type[Section]) -> list:
     """Return the fields of a section (class or instance) that metadata.json holds by name."""
     bookkeeping = {f.name for f in fields(Section)}
     return [f for f in fields(section) if f.name not in bookkeeping]
 
 
-def as_json(value) -> typing.Any:
+def as_json(value: object) -> typing.Any:
     """Return the JSON value of a part of the tree: a section, a tuple, a number..."""
     if is_dataclass(value):
         return _section_json(value)
@@ -340,12 +341,14 @@ def _section_json(section: Section) -> dict:
     return dict(sorted(out.items()))
 
 
-def _default(f):
+def _default(f: Field):
     """Return a field's default (MISSING for a required one: equal to no value)."""
     return f.default_factory() if f.default_factory is not MISSING else f.default
 
 
-def _value(kind, value, path: str):
+# `kind`: a field's type hint (a class, a union, Annotated, a generic alias); `value`:
+# whatever the JSON holds there (checking it is the job).
+def _value(kind: object, value: object, path: str):
     origin, args = typing.get_origin(kind), typing.get_args(kind)
     if origin is Annotated:
         checked = _value(args[0], value, path)
@@ -376,7 +379,7 @@ def _value(kind, value, path: str):
     return _scalar(kind, value, path)
 
 
-def _scalar(kind, value, path: str):
+def _scalar(kind: type, value: object, path: str):
     if kind is dict:
         if not isinstance(value, dict):
             raise MetadataError(f'{path}: must be an object, got {shown(value)}')
@@ -472,7 +475,7 @@ def _check_config(config: dict) -> None:
                             f'({cfg.actor_log_std_max:g}), got {cfg.actor_log_std_min:g}')
 
 
-def _check(checks) -> None:
+def _check(checks: Iterable[tuple[bool, str, str]]) -> None:
     """Raise MetadataError for the first failed (ok, field, reason) of `checks`.
 
     `checks` is a generator, so a check runs only once those before it have
@@ -598,7 +601,7 @@ def _normalisation_shape(norm: ParamNormMeta, names: tuple[str, ...]):
            f'each needs one value per parameter {list(names)}')
 
 
-def _values_in_range(norm: ParamNormMeta, live_params):
+def _values_in_range(norm: ParamNormMeta, live_params: tuple[LiveParam, ...]):
     """Train values inside the family's ranges; without them, a normalisation that fits them."""
     path = 'param_normalisation'
     rows = _rows(norm)
@@ -635,7 +638,7 @@ def _derived_normalisation(norm: ParamNormMeta):
                                   f'{shown(_one_or_list(have))}')
 
 
-def _one_or_list(values):
+def _one_or_list(values: Sequence[float]) -> float | list[float]:
     return values[0] if len(values) == 1 else list(values)
 
 

@@ -32,6 +32,7 @@ import json
 import os
 from pathlib import Path
 import shutil
+from typing import TYPE_CHECKING
 import warnings
 
 import onnx
@@ -41,6 +42,10 @@ from torch import nn
 from zeus_ros.deploy.checkpoint import (CheckpointError, load_model, MODEL_FILE, resolve_dir,
                                         sha256_file, write_metadata)
 from zeus_ros.deploy.metadata import CheckpointMetadata
+
+if TYPE_CHECKING:
+    from zeus_ros.core.methods import ContextMethod
+    from zeus_ros.core.networks import Actor
 
 MANIFEST = 'onnx.json'
 MANIFEST_FORMAT = 1
@@ -52,37 +57,39 @@ _DTYPES = {onnx.TensorProto.FLOAT: 'float32', onnx.TensorProto.BOOL: 'bool'}
 class _Context(nn.Module):
     """The method's deployed context over (rows, mask[, true_param])."""
 
-    def __init__(self, method):
+    def __init__(self, method: ContextMethod):
         super().__init__()
         self.method = method
         # Registered so that the modules' weights are part of this graph.
         self.nets = nn.ModuleDict(method.inference_modules())
 
-    def forward(self, rows, mask, true_param=None):
+    def forward(self, rows: torch.Tensor, mask: torch.Tensor,
+                true_param: torch.Tensor | None = None) -> torch.Tensor:
         return self.method.deployed_context(rows, mask, true_param)
 
 
 class _Actor(nn.Module):
-    def __init__(self, actor):
+    def __init__(self, actor: Actor):
         super().__init__()
         self.actor = actor
 
-    def forward(self, features, latent):
+    def forward(self, features: torch.Tensor, latent: torch.Tensor) -> torch.Tensor:
         return self.actor.mean_action(torch.cat([features, latent], dim=-1))
 
 
 class _Decoder(nn.Module):
-    def __init__(self, method):
+    def __init__(self, method: ContextMethod):
         super().__init__()
         self.method = method
         self.nets = nn.ModuleDict(method.inference_modules())
 
-    def forward(self, latent):
+    def forward(self, latent: torch.Tensor) -> torch.Tensor | None:
         return self.method.decode(latent)
 
 
 @torch.no_grad()
-def _graphs(meta: CheckpointMetadata, method, modules: dict) -> dict:
+def _graphs(meta: CheckpointMetadata, method: ContextMethod,
+            modules: dict[str, nn.Module]) -> dict:
     """Graph name -> (module, example inputs, input names, output name)."""
     k, row_dim, obs_dim = meta.context.k, meta.context.row_dim, meta.obs_layout.obs_dim
     dim = method.context_dim
@@ -128,7 +135,7 @@ def _export_graph(module: nn.Module, args: tuple, inputs: list, output: str,
             'outputs': [_describe(v) for v in graph.graph.output]}
 
 
-def _name_output_sizes(graph, shape: tuple) -> None:
+def _name_output_sizes(graph: onnx.ModelProto, shape: tuple) -> None:
     """Write the output's sizes after the batch axis as numbers.
 
     The exporter leaves some symbolic (the actor's action comes out of a split,
@@ -139,15 +146,15 @@ def _name_output_sizes(graph, shape: tuple) -> None:
         dim.dim_value = int(size)
 
 
-def _describe(value) -> dict:
+def _describe(value: onnx.ValueInfoProto) -> dict:
     shape = [d.dim_param or d.dim_value for d in value.type.tensor_type.shape.dim]
     elem = value.type.tensor_type.elem_type
     return {'name': value.name, 'dtype': _DTYPES.get(elem, onnx.TensorProto.DataType.Name(elem)),
             'shape': shape}
 
 
-def manifest_for(meta: CheckpointMetadata, method, modules: dict, out_dir: Path,
-                 source: Path) -> dict:
+def manifest_for(meta: CheckpointMetadata, method: ContextMethod, modules: dict[str, nn.Module],
+                 out_dir: Path, source: Path) -> dict:
     """Export every graph of a loaded checkpoint into `out_dir`; return the manifest."""
     graphs = {name: _export_graph(*spec, out_dir / f'{name}.onnx')
               for name, spec in _graphs(meta, method, modules).items()}
@@ -167,7 +174,8 @@ def manifest_for(meta: CheckpointMetadata, method, modules: dict, out_dir: Path,
     }
 
 
-def export_onnx(checkpoint, out_dir=None, replace: bool = True) -> Path:
+def export_onnx(checkpoint: str | Path, out_dir: str | Path | None = None,
+                replace: bool = True) -> Path:
     """Export a checkpoint's graphs into `out_dir` (default: <checkpoint>/onnx); return it.
 
     Written to a temporary directory and renamed into place, so a reader never

@@ -117,8 +117,8 @@ class OnnxInferenceModel(DeployedModel):
                        for name, s in self.sessions.items()}
 
     @classmethod
-    def load(cls, path, expected_family: str | None = None, obs_dim: int | None = None,
-             action_dim: int | None = None) -> 'OnnxInferenceModel':
+    def load(cls, path: str | Path, expected_family: str | None = None,
+             obs_dim: int | None = None, action_dim: int | None = None) -> 'OnnxInferenceModel':
         """Load the ONNX export of a checkpoint (made on the fly if it has none)."""
         meta = load_metadata(path, expected_family, obs_dim, action_dim)
         export_dir, manifest = locate_export(resolve_dir(path), meta)
@@ -127,20 +127,21 @@ class OnnxInferenceModel(DeployedModel):
     def _run(self, graph: str, **values) -> np.ndarray:
         return self.sessions[graph].run(None, {n: values[n] for n in self.inputs[graph]})[0]
 
-    def _context(self, rows, mask, param):
+    def _context(self, rows: np.ndarray, mask: np.ndarray,
+                 param: np.ndarray | None) -> np.ndarray:
         if 'context' not in self.sessions:
             return np.zeros((rows.shape[0], 0), dtype=np.float32)   # sac: no context
         if param is None and 'true_param' in self.inputs['context']:
             raise ValueError(f'the {self.method_name} method needs the true parameter')
         return self._run('context', rows=rows, mask=mask, true_param=param)
 
-    def _features(self, obs):
+    def _features(self, obs: np.ndarray) -> np.ndarray:
         return self._run('phi', obs=obs)
 
-    def _act(self, features, latent):
+    def _act(self, features: np.ndarray, latent: np.ndarray) -> np.ndarray:
         return self._run('actor', features=features, latent=latent)
 
-    def _decode(self, latent):
+    def _decode(self, latent: np.ndarray) -> np.ndarray | None:
         if 'decoder' not in self.sessions:
             return None
         return self._run('decoder', latent=latent)

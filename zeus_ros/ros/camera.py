@@ -18,12 +18,16 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Any, Callable, Protocol, TYPE_CHECKING
 
 from builtin_interfaces.msg import Time
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image
 
 from sim_node.camera import geometry_of, NoOffscreenGL, SimCamera
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 IMAGE_TOPIC = '/camera/image_raw'
 INFO_TOPIC = '/camera/camera_info'
@@ -33,7 +37,21 @@ CAMERA_QOS_DEPTH = 2
 CLOSE_TIMEOUT_S = 2.0
 
 
-def to_time(stamp) -> Time:
+class CameraPhysics(Protocol):
+    """What the camera copies of the physics in force: sim_node.family_env.EnvPhysics.
+
+    A protocol of its own: the plumbing imports no simulation module but the
+    renderer (test_layers), not even for a type.
+    """
+
+    @property
+    def model(self) -> Any: ...    # has `ptr`, the mujoco.MjModel
+
+    @property
+    def data(self) -> Any: ...     # has qpos and qvel
+
+
+def to_time(stamp: int | Time) -> Time:
     """Return a builtin_interfaces/Time for integer nanoseconds (a Time as it is)."""
     if isinstance(stamp, Time):
         return stamp
@@ -42,7 +60,7 @@ def to_time(stamp) -> Time:
 
 
 
-def image_message(frame: np.ndarray, stamp, frame_id: str = FRAME_ID) -> Image:
+def image_message(frame: np.ndarray, stamp: int | Time, frame_id: str = FRAME_ID) -> Image:
     """sensor_msgs/Image (rgb8) of a frame; `stamp` in nanoseconds or a Time."""
     height, width, channels = frame.shape
     if channels != 3 or frame.dtype != np.uint8:
@@ -53,7 +71,7 @@ def image_message(frame: np.ndarray, stamp, frame_id: str = FRAME_ID) -> Image:
     return image
 
 
-def camera_info(camera: SimCamera, stamp, frame_id: str = FRAME_ID) -> CameraInfo:
+def camera_info(camera: SimCamera, stamp: int | Time, frame_id: str = FRAME_ID) -> CameraInfo:
     """CameraInfo of the pinhole camera that made the frames (no distortion)."""
     f = camera.focal_length()
     cx, cy = camera.width / 2, camera.height / 2
@@ -78,9 +96,10 @@ class CameraPublisher:
     `start()` (a node that may still refuse to run draws nothing).
     """
 
-    def __init__(self, node, get_physics, rate_hz: float, lock=None, get_stamp_ns=None,
-                 width: int = 320, height: int = 240, camera: int | str | None = None,
-                 start: bool = True):
+    def __init__(self, node: Node, get_physics: Callable[[], CameraPhysics], rate_hz: float,
+                 lock: threading.Lock | None = None,
+                 get_stamp_ns: Callable[[], int] | None = None, width: int = 320,
+                 height: int = 240, camera: int | str | None = None, start: bool = True):
         self.rate_hz = float(rate_hz)
         self.frames = 0
         self.image_pub = self.info_pub = self._thread = None

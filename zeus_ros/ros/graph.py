@@ -13,7 +13,10 @@ from dataclasses import dataclass
 import fcntl
 import os
 import random
-from typing import IO, Iterable, Mapping, Sequence
+from typing import IO, Iterable, Mapping, Sequence, TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 # The lock files the test suite has always taken: demos, tests and test runs
 # of other checkouts on one machine then never pick the same domain.
@@ -81,7 +84,7 @@ def foreign_publishers(observed: Mapping[str, Sequence[str]],
     return problems
 
 
-def publisher_names(node, topic: str) -> list[str]:
+def publisher_names(node: Node, topic: str) -> list[str]:
     """Full names of the nodes publishing `topic` on the graph `node` sees, one per writer."""
     return [_full_name(info.node_namespace, info.node_name)
             for info in node.get_publishers_info_by_topic(topic)]

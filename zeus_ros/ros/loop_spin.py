@@ -39,15 +39,29 @@ from __future__ import annotations
 import functools
 import threading
 import time
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence, TYPE_CHECKING
 
 from rclpy.callback_groups import CallbackGroup
-from rclpy.executors import (ConditionReachedException, ExternalShutdownException,
-                             ShutdownException, SingleThreadedExecutor, TimeoutException)
+from rclpy.executors import (ConditionReachedException, Executor, ExternalShutdownException,
+                             ShutdownException, SingleThreadedExecutor, TimeoutException,
+                             TimeoutObject)
 from rclpy.experimental import EventsExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.subscription import Subscription
+
+if TYPE_CHECKING:
+    # The native classes behind _rclpy.GuardCondition and _rclpy.WaitSet.
+    from rclpy._rclpy_pybind11 import GuardCondition, WaitSet
+    from rclpy.client import Client
+    from rclpy.context import Context
+    from rclpy.qos import QoSProfile
+    from rclpy.service import Service
+    from rclpy.timer import Timer
+    from rclpy.waitable import Waitable
+
+    # What a callback group is asked about: any entity of a node.
+    Entity = Subscription | Timer | Client | Service | Waitable
 
 # Longest the loop sleeps without a message or deadline (it then checks shutdown).
 IDLE_WAKE_S = 0.1
@@ -66,18 +80,18 @@ class LoopDeadline(NamedTuple):
 class LoopCallbackGroup(CallbackGroup):
     """Marks the loop's subscriptions: `spin_loop` takes them, rclpy's executors never do."""
 
-    def can_execute(self, entity) -> bool:  # noqa: D102, ARG002 (CallbackGroup's)
+    def can_execute(self, entity: Entity) -> bool:  # noqa: D102, ARG002 (CallbackGroup's)
         return False
 
-    def beginning_execution(self, entity) -> bool:  # noqa: D102, ARG002 (CallbackGroup's)
+    def beginning_execution(self, entity: Entity) -> bool:  # noqa: D102, ARG002 (CallbackGroup's)
         return False
 
-    def ending_execution(self, entity) -> None:  # noqa: D102
+    def ending_execution(self, entity: Entity) -> None:  # noqa: D102
         pass
 
 
-def create_loop_subscription(node: Node, msg_type, topic: str, callback: Callable, qos,
-                             **options) -> Subscription:
+def create_loop_subscription(node: Node, msg_type: type, topic: str, callback: Callable,
+                             qos: QoSProfile | int, **options) -> Subscription:
     """Create a subscription on the control loop's hot path (see `spin_loop`).
 
     `options` go to `Node.create_subscription` (e.g. raw=True for CDR bytes).
@@ -103,11 +117,12 @@ class _SerializedExecutor(SingleThreadedExecutor):
     7.1.6 as pinned in requirements.lock: check it when rclpy is upgraded.
     """
 
-    def __init__(self, lock: threading.Lock, wake_loop, context):
+    def __init__(self, lock: threading.Lock, wake_loop: GuardCondition, context: Context):
         super().__init__(context=context)
         self._lock, self._wake_loop = lock, wake_loop
 
-    def _spin_once_impl(self, timeout_sec=None, wait_condition=lambda: False) -> None:
+    def _spin_once_impl(self, timeout_sec: float | TimeoutObject | None = None,
+                        wait_condition: Callable[[], bool] = lambda: False) -> None:
         try:
             handler, _, _ = self.wait_for_ready_callbacks(timeout_sec, None, wait_condition)
         except (ShutdownException, TimeoutException, ConditionReachedException):
@@ -120,7 +135,8 @@ class _SerializedExecutor(SingleThreadedExecutor):
         handler.result()
 
 
-def _serialized(callback: Callable, lock: threading.Lock, wake_loop, errors: list) -> Callable:
+def _serialized(callback: Callable, lock: threading.Lock, wake_loop: GuardCondition,
+                errors: list[BaseException]) -> Callable:
     """Wrap `callback` to run under the loop's lock, then wake the loop (signature kept).
 
     An exception goes to `errors`, which ends the loop and is raised by
@@ -151,7 +167,8 @@ class _ServicesView:
     the nodes create theirs in __init__.
     """
 
-    def __init__(self, node: Node, lock: threading.Lock, wake_loop, errors: list):
+    def __init__(self, node: Node, lock: threading.Lock, wake_loop: GuardCondition,
+                 errors: list[BaseException]):
         self.node, self.executor = node, None   # add_node sets `executor`
         for entity in (*self.subscriptions, *node.timers, *node.services):
             entity.callback = _serialized(entity.callback, lock, wake_loop, errors)
@@ -161,12 +178,13 @@ class _ServicesView:
         loop = set(loop_subscriptions(self.node))
         return [sub for sub in self.node.subscriptions if sub not in loop]
 
-    def __getattr__(self, name):   # timers, services, clients, waitables, guards
+    def __getattr__(self, name: str):   # timers, services, clients, waitables, guards
         return getattr(self.node, name)
 
 
-def _services_executor(kind: str, nodes, lock: threading.Lock, wake_loop, context,
-                       errors: list):
+def _services_executor(kind: str, nodes: Sequence[Node], lock: threading.Lock,
+                       wake_loop: GuardCondition, context: Context,
+                       errors: list[BaseException]) -> Executor:
     """Build the background executor `kind` (EXECUTORS) over `nodes`' services and timers.
 
     A callback's exception goes to `errors` (the events one's; the single
@@ -205,7 +223,7 @@ def wait_until(predicate: Callable[[], object], timeout: float, poll_s: float = 
     return True
 
 
-def _spin_services(executor, errors: list) -> None:
+def _spin_services(executor: Executor, errors: list[BaseException]) -> None:
     # Always with a timeout: the EventsExecutor's wait without one never sleeps.
     try:
         while executor.context.ok() and not errors:   # an error ends the loop: stop too
@@ -216,7 +234,7 @@ def _spin_services(executor, errors: list) -> None:
         errors.append(error)
 
 
-def _take_all(subscription) -> None:
+def _take_all(subscription: Subscription) -> None:
     """Deliver every message waiting on a subscription to its callback."""
     handle, msg_type, raw, callback = (subscription.handle, subscription.msg_type,
                                        subscription.raw, subscription.callback)
@@ -264,7 +282,7 @@ def spin_loop(node: Node, *more: Node, executor: str = 'single') -> None:
         raise errors[0]
 
 
-def _earliest_deadline(nodes) -> Callable[[], LoopDeadline | None]:
+def _earliest_deadline(nodes: Sequence[Node]) -> Callable[[], LoopDeadline | None]:
     """Return a function giving the earliest `loop_deadline()` of `nodes` (None: none)."""
     getters = [node.loop_deadline for node in nodes if hasattr(node, 'loop_deadline')]
     if len(getters) == 1:
@@ -276,8 +294,9 @@ def _earliest_deadline(nodes) -> Callable[[], LoopDeadline | None]:
     return earliest
 
 
-def _loop(context, lock, wake_loop, deadline_of, subscriptions, errors,
-          sweep: bool = False) -> None:
+def _loop(context: Context, lock: threading.Lock, wake_loop: GuardCondition,
+          deadline_of: Callable[[], LoopDeadline | None], subscriptions: list[Subscription],
+          errors: list[BaseException], sweep: bool = False) -> None:
     """Wait for loop messages or the deadline and dispatch them, until shutdown or an error."""
     wait_set = _rclpy.WaitSet(len(subscriptions), 1, 0, 0, 0, 0, context.handle)
     while context.ok() and not errors:
@@ -302,7 +321,8 @@ def _loop(context, lock, wake_loop, deadline_of, subscriptions, errors,
             _dispatch(wait_set, lock, subscriptions, sweep)
 
 
-def _dispatch(wait_set, lock, subscriptions, sweep: bool) -> None:
+def _dispatch(wait_set: WaitSet, lock: threading.Lock, subscriptions: list[Subscription],
+              sweep: bool) -> None:
     """Deliver what the wait found; with `sweep`, try every subscription in order.
 
     Nodes of one process (composition) hand each other their messages inside

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -54,8 +54,9 @@ class BadMessage(ValueError):
     """A message that cannot be used (wrong joints, lengths, non-finite values)."""
 
 
-def observation_from_message(layout: ObservationLayout, names, positions,
-                             velocities) -> np.ndarray:
+def observation_from_message(layout: ObservationLayout, names: Sequence[str],
+                             positions: Sequence[float],
+                             velocities: Sequence[float]) -> np.ndarray:
     """Return a JointState's fields as the policy observation; BadMessage says why not."""
     if not len(names) == len(positions) == len(velocities):
         raise BadMessage(f'{len(names)} names, {len(positions)} positions and '
@@ -146,7 +147,8 @@ class TransitionAssembler:
         self.restarts = 0   # clocks that went back or jumped (RESTART, JUMP)
         self.outliers = 0   # states ignored for a stamp far ahead (OUTLIER)
 
-    def add_joint_state(self, stamp_ns: int, names, positions, velocities) -> StateRecord | None:
+    def add_joint_state(self, stamp_ns: int, names: Sequence[str], positions: Sequence[float],
+                        velocities: Sequence[float]) -> StateRecord | None:
         """Record a joint state; return the StateRecord it completes, if any.
 
         Raises BadMessage, before touching anything, for a state that does not fit.
@@ -156,7 +158,7 @@ class TransitionAssembler:
         return self._complete(stamp_ns)
 
     def add_step_info(self, stamp_ns: int, episode: int, step: int, reward: float,
-                      applied_action, truncated: bool) -> StateRecord | None:
+                      applied_action: Sequence[float], truncated: bool) -> StateRecord | None:
         """Record a StepInfo; return the StateRecord it completes, if any.
 
         Raises BadMessage, before touching anything, for a transition that
@@ -225,7 +227,7 @@ class TransitionAssembler:
                 del pending[stale]
                 self.dropped += 1
 
-    def _notify(self, event: str, stamp_ns: int, previous_high) -> None:
+    def _notify(self, event: str, stamp_ns: int, previous_high: int | None) -> None:
         if self.on_clock is not None:
             self.on_clock(event, stamp_ns, previous_high)
 

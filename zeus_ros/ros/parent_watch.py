@@ -23,6 +23,10 @@ import ctypes
 import os
 import signal
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from types import FrameType
 
 PR_SET_PDEATHSIG = 1
 # A real-time signal, which nothing else here uses.
@@ -31,7 +35,7 @@ PARENT_DEATH_SIGNAL = signal.SIGRTMIN + 3 if hasattr(signal, 'SIGRTMIN') else No
 _launcher_pid: int | None = None
 
 
-def _parent_gone(_signum=None, _frame=None) -> None:
+def _parent_gone(_signum: int | None = None, _frame: FrameType | None = None) -> None:
     if os.getppid() != _launcher_pid:
         os.kill(os.getpid(), signal.SIGTERM)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import time
+from typing import Callable, Protocol, TYPE_CHECKING
 
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
@@ -19,6 +20,9 @@ from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Step
 
 from zeus_ros.ros.deferred import DeferredService
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 STEP_MAX = 10_000   # ten walker episodes; an answer holds every state
 
@@ -34,6 +38,41 @@ def step_refusal(steps: int, paused: bool, under_way: int | None) -> str | None:
     return None
 
 
+class _Episode(Protocol):
+    @property
+    def step_count(self) -> int: ...
+
+
+class Stepping(Protocol):
+    """What the services read and drive of the sim's stepper: a sim_node.stepper.SimStepper.
+
+    A protocol of its own: the plumbing imports none of the simulation's
+    stepping code (test_layers), not even for a type; the sim node hands its
+    stepper in.
+    """
+
+    @property
+    def env(self) -> _Episode: ...
+
+    @property
+    def episode(self) -> int: ...
+
+    @property
+    def budget(self) -> int | None: ...
+
+    @property
+    def paused(self) -> bool: ...
+
+    @property
+    def counters(self) -> dict[str, int]: ...
+
+    def pause(self, now: float) -> bool: ...
+
+    def resume(self, now: float) -> bool: ...
+
+    def step(self, steps: int, now: float) -> None: ...
+
+
 @dataclass
 class StepCall:
     """A ~/step request being carried out: its response, filled as the states go out."""
@@ -47,7 +86,8 @@ class StepCall:
 class PauseServices:
     """~/pause, ~/resume and ~/step on `node`, over its `stepper`."""
 
-    def __init__(self, node, stepper, clock=time.monotonic):
+    def __init__(self, node: Node, stepper: Stepping,
+                 clock: Callable[[], float] = time.monotonic):
         self.node, self.stepper, self.clock = node, stepper, clock
         node.create_service(Trigger, '~/pause', self.pause_callback)
         node.create_service(Trigger, '~/resume', self.resume_callback)
@@ -58,7 +98,8 @@ class PauseServices:
     def _where(self) -> str:
         return f'episode {self.stepper.episode} step {self.stepper.env.step_count}'
 
-    def pause_callback(self, _request, response: Trigger.Response) -> Trigger.Response:
+    def pause_callback(self, _request: Trigger.Request,
+                       response: Trigger.Response) -> Trigger.Response:
         response.success = True
         if self.stepper.pause(self.clock()):   # from running, or from a step under way
             response.message = f'paused at {self._where()}'
@@ -68,7 +109,8 @@ class PauseServices:
             response.message = f'already paused at {self._where()}'
         return response
 
-    def resume_callback(self, _request, response: Trigger.Response) -> Trigger.Response:
+    def resume_callback(self, _request: Trigger.Request,
+                        response: Trigger.Response) -> Trigger.Response:
         response.success = True
         self._end_call('interrupted by ~/resume')
         if self.stepper.resume(self.clock()):

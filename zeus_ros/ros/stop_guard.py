@@ -14,11 +14,15 @@ from __future__ import annotations
 import os
 import signal
 import sys
+from typing import TYPE_CHECKING
 
 from zeus_ros.ros.parent_watch import end_with_launcher
 
+if TYPE_CHECKING:
+    from types import FrameType
 
-def _exit_quietly(_signum, _frame) -> None:
+
+def _exit_quietly(_signum: int, _frame: FrameType | None) -> None:
     os._exit(0)  # nothing to clean up: no ROS context exists before run_node
 
 

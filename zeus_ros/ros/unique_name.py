@@ -31,10 +31,13 @@ from dataclasses import dataclass
 import os
 import socket
 import time
-from typing import Callable
+from typing import Callable, TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 # How long after its creation a node waits for discovery to report the nodes
 # already on the graph (on this loopback graph they appear within tenths of a
@@ -118,18 +121,18 @@ def hardware_id() -> str:
     return f'{socket.gethostname()}:{os.getpid()}'
 
 
-def fully_qualified_name(node) -> str:
+def fully_qualified_name(node: Node) -> str:
     namespace = node.get_namespace().rstrip('/')
     return f'{namespace}/{node.get_name()}'
 
 
-def same_named_count(node) -> int:
+def same_named_count(node: Node) -> int:
     """How many nodes of the graph, this one included, have this node's name and namespace."""
     own = (node.get_name(), node.get_namespace())
     return sum(1 for entry in node.get_node_names_and_namespaces() if tuple(entry) == own)
 
 
-def refusal(node, own: StartRecord, older: StartRecord | None = None) -> DuplicateNode:
+def refusal(node: Node, own: StartRecord, older: StartRecord | None = None) -> DuplicateNode:
     """Return the error a node refuses with; it names both processes, for the user to stop one."""
     domain = os.environ.get('ROS_DOMAIN_ID', '0')
     other = (f'process {older.hardware_id}, {START_KEY} {older.started_ns}' if older
@@ -149,7 +152,7 @@ class NameGuard:
     node finishes starting; it publishes the record at once.
     """
 
-    def __init__(self, node, started_ns: int, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, node: Node, started_ns: int, clock: Callable[[], float] = time.monotonic):
         self.node, self._clock = node, clock
         self.own = StartRecord(fully_qualified_name(node), hardware_id(), started_ns)
         self._pending: dict[str, tuple[StartRecord, float]] = {}   # by hardware_id

@@ -9,7 +9,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any
+from typing import Any, Callable, Sequence, TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
@@ -26,6 +26,17 @@ from zeus_ros.ros.loop_spin import EXECUTORS, spin_loop
 from zeus_ros.ros.parent_watch import end_with_launcher
 from zeus_ros.ros.unique_name import DISCOVERY_WAIT_S, DuplicateNode, NameGuard
 
+if TYPE_CHECKING:
+    from types import FrameType
+
+    from rclpy.client import Client
+    from rclpy.impl.rcutils_logger import RcutilsLogger
+    from rclpy.node import Node
+    from std_msgs.msg import Header
+
+# `wait(predicate, seconds) -> bool`: spins a client's node until predicate() or the time is up.
+Wait = Callable[[Callable[[], bool], float], bool]
+
 # Reliable, keep-last 10, volatile on every topic of the loop. Lockstep needs
 # reliability (a lost state or command stalls a step until the timeout and
 # breaks determinism); the shallow queue bounds the backlog in realtime mode,
@@ -34,12 +45,12 @@ LOOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                       reliability=ReliabilityPolicy.RELIABLE)
 
 
-def stamp_ns(header) -> int:
+def stamp_ns(header: Header) -> int:
     """Return a header's stamp as integer nanoseconds."""
     return stamp_to_ns(header.stamp.sec, header.stamp.nanosec)
 
 
-def set_stamp(header, ns: int) -> None:
+def set_stamp(header: Header, ns: int) -> None:
     """Set a header's stamp from integer nanoseconds."""
     header.stamp.sec, header.stamp.nanosec = ns_to_stamp(ns)
 
@@ -49,7 +60,7 @@ def describe(text: str, read_only: bool = False, **ranges) -> ParameterDescripto
     return ParameterDescriptor(description=text, read_only=read_only, **ranges)
 
 
-def declare_thread_priority(node) -> int:
+def declare_thread_priority(node: Node) -> int:
     """Declare `thread_priority` once and return it; a value outside [0, 99] raises.
 
     A node declares it among its own parameters, so that a bad value ends it
@@ -64,7 +75,7 @@ def declare_thread_priority(node) -> int:
     return node.get_parameter('thread_priority').value
 
 
-def declare_executor(node) -> str:
+def declare_executor(node: Node) -> str:
     """Declare `executor` once and return it; a value not in EXECUTORS raises BadParameter."""
     if not node.has_parameter('executor'):
         node.declare_parameter('executor', 'single', describe(
@@ -78,7 +89,7 @@ def declare_executor(node) -> str:
     return value
 
 
-def apply_thread_priority(node) -> int:
+def apply_thread_priority(node: Node) -> int:
     """Run the calling thread under SCHED_FIFO at `thread_priority` if it is > 0.
 
     The convention of ros2_control's controller_manager: a node that must meet a
@@ -107,18 +118,18 @@ class BadParameter(ValueError):
     """A value given at start that the node's own checks refuse."""
 
 
-def _overrides(node) -> dict:
+def _overrides(node: Node) -> dict:
     # The values given at start, as rclpy 7.1.6 (requirements.lock) keeps them:
     # there is no public accessor.
     return node._parameter_overrides
 
 
-def parameter_names(node) -> list[str]:
+def parameter_names(node: Node) -> list[str]:
     """Return the node's declared parameters, in declaration order."""
     return list(node.list_parameters([], 0).names)
 
 
-def unknown_overrides(node) -> list[str]:
+def unknown_overrides(node: Node) -> list[str]:
     """Names given at start that the node never declared.
 
     rclpy ignores such an override without a word (-p friction:=0.5 on a
@@ -128,7 +139,7 @@ def unknown_overrides(node) -> list[str]:
     return sorted(name for name in _overrides(node) if not node.has_parameter(name))
 
 
-def refuse_unknown_overrides(node) -> None:
+def refuse_unknown_overrides(node: Node) -> None:
     """Raise UnknownParameters, naming the node's parameters, for an unknown override."""
     unknown = unknown_overrides(node)
     if unknown:
@@ -136,7 +147,8 @@ def refuse_unknown_overrides(node) -> None:
                                 f'{node.get_name()} has {", ".join(parameter_names(node))}')
 
 
-def declare_double(node, name: str, default: float, descriptor: ParameterDescriptor) -> float:
+def declare_double(node: Node, name: str, default: float,
+                   descriptor: ParameterDescriptor) -> float:
     """Declare a double parameter that also takes an integer at start (-p friction:=1)."""
     override = _overrides(node).get(name)
     if override is not None and override.type_ == Parameter.Type.INTEGER:
@@ -145,7 +157,7 @@ def declare_double(node, name: str, default: float, descriptor: ParameterDescrip
     return node.declare_parameter(name, float(default), descriptor).value
 
 
-def accept_integers_for_doubles(node) -> None:
+def accept_integers_for_doubles(node: Node) -> None:
     """Let an integer set a double parameter (`ros2 param set /sim_node friction 1`).
 
     rclpy refuses it ('expected Type.DOUBLE got Type.INTEGER'), yet people type 1
@@ -164,12 +176,13 @@ def accept_integers_for_doubles(node) -> None:
     node.add_pre_set_parameters_callback(as_doubles)
 
 
-def _is_double(node, name: str) -> bool:
+def _is_double(node: Node, name: str) -> bool:
     return (node.has_parameter(name)
             and node.describe_parameter(name).type == ParameterType.PARAMETER_DOUBLE)
 
 
-def call_service(client, request, wait, timeout: float = 30.0,
+# `request`: the service type's Request message (any service's), passed on as it is.
+def call_service(client: Client, request: object, wait: Wait, timeout: float = 30.0,
                  attempt_s: float = 3.0) -> Any:
     """Call a service and return its response, re-sending a request left unanswered.
 
@@ -193,7 +206,7 @@ class ResetRefused(RuntimeError):
     """The sim refused a reset request; the message says why."""
 
 
-def reset_episode(client, wait, seed: int = -1, params: dict | None = None,
+def reset_episode(client: Client, wait: Wait, seed: int = -1, params: dict | None = None,
                   timeout: float = 30.0) -> int:
     """Ask `sim_node` for a new episode and return its number (ResetRefused if refused).
 
@@ -210,7 +223,7 @@ def reset_episode(client, wait, seed: int = -1, params: dict | None = None,
     return int(response.episode)
 
 
-def diagnostic_array(node, name: str, hardware_id: str, values: dict,
+def diagnostic_array(node: Node, name: str, hardware_id: str, values: dict,
                      problem: str | None = None) -> DiagnosticArray:
     """One status for `node`: OK, or WARN with `problem` as its message."""
     status = DiagnosticStatus(
@@ -226,7 +239,7 @@ def diagnostic_array(node, name: str, hardware_id: str, values: dict,
 class ThrottledWarnings:
     """Log a warning per key at most once per period."""
 
-    def __init__(self, logger, period_s: float = 2.0):
+    def __init__(self, logger: RcutilsLogger, period_s: float = 2.0):
         self.logger, self.period_s = logger, period_s
         self._last: dict[str, float] = {}
 
@@ -246,7 +259,7 @@ class FirstContact:
     throttled warning. The diagnostics count both either way.
     """
 
-    def __init__(self, logger, warnings: ThrottledWarnings, waiting: str):
+    def __init__(self, logger: RcutilsLogger, warnings: ThrottledWarnings, waiting: str):
         self.logger, self.warnings, self.waiting = logger, warnings, waiting
         self.contacted = False
         self._noted = False
@@ -384,7 +397,7 @@ class StopSignals:
         for signum in self.SIGNALS:
             signal.signal(signum, signal.SIG_IGN)
 
-    def _handle(self, signum, _frame) -> None:
+    def _handle(self, signum: int, _frame: FrameType | None) -> None:
         if self.stopping:
             return
         self.stopping = True
@@ -408,7 +421,7 @@ def _rcl_reason(error: Exception) -> str:
     return text + (' (no value after :=)' if ":='" in text else '')
 
 
-def _init_rclpy(args) -> str | None:
+def _init_rclpy(args: list[str] | None) -> str | None:
     """rclpy.init without rclpy's signal handlers; returns why the command line is bad."""
     # rcl also logs 'Failed to parse global arguments' for a bad one: hushed for
     # the init, so that the refusal is one line (unless --log-level set rcl's).
@@ -444,7 +457,7 @@ def name_wait_s() -> float:
     return value
 
 
-def _start(node_class):
+def _start(node_class: type[Node]) -> Node:
     """Build the node and check what it was given at start, before it spins."""
     created_at, started_ns = time.monotonic(), time.time_ns()
     node = node_class()
@@ -476,7 +489,7 @@ def _close(nodes: list, name: str) -> None:
             print(f'{name}: while closing: {error}', file=sys.stderr)
 
 
-def run_node(node_class, args=None, fatal: tuple = ()) -> int:
+def run_node(node_class: type[Node], args: list[str] | None = None, fatal: tuple = ()) -> int:
     """Spin one node with `spin_loop` until SIGINT, SIGTERM or shutdown; return the exit code.
 
     0 after a signal at any moment, once or repeatedly (see StopSignals). 1,
@@ -490,7 +503,8 @@ def run_node(node_class, args=None, fatal: tuple = ()) -> int:
     return run_nodes((node_class,), args, fatal)
 
 
-def run_nodes(node_classes, args=None, fatal: tuple = (), name: str | None = None) -> int:
+def run_nodes(node_classes: Sequence[type[Node]], args: list[str] | None = None,
+              fatal: tuple = (), name: str | None = None) -> int:
     """`run_node` for several nodes in one process, on one `spin_loop` (composition).
 
     They are built in order with one rclpy context (per-node parameters:
@@ -521,7 +535,8 @@ def _start_failure(error: Exception, where: str, fatal: tuple) -> int:
     raise error
 
 
-def _run(node_classes: tuple, args, fatal: tuple, stop: StopSignals, name: str) -> int:
+def _run(node_classes: tuple, args: list[str] | None, fatal: tuple, stop: StopSignals,
+         name: str) -> int:
     where, nodes = name, []
     try:
         problem = _init_rclpy(args)

@@ -30,6 +30,7 @@ stop_guard.install('context_node', __name__)
 import math
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
@@ -44,9 +45,13 @@ from zeus_ros.core.window import ContextWindow
 from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
                                      load_weights_parameter)
 from zeus_ros.ros.loop_spin import create_loop_subscription
-from zeus_ros.ros.pairing import BadMessage, forget_received, OUTLIER, TransitionAssembler
+from zeus_ros.ros.pairing import (BadMessage, forget_received, OUTLIER, StateRecord,
+                                  TransitionAssembler)
 from zeus_ros.ros.util import (diagnostic_array, LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
+
+if TYPE_CHECKING:
+    from std_msgs.msg import Header
 
 # Largest magnitude a float32 field (Context.param_estimates) holds.
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -76,7 +81,7 @@ class ContextGuard:
                         np.where(np.isnan(values), math.nan, math.inf))
 
     def context(self, rows: np.ndarray, mask: np.ndarray,
-                true_param=None) -> tuple[np.ndarray, np.ndarray, str]:
+                true_param: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, str]:
         """(latent, estimates, problem): problem is '' when nothing was replaced."""
         latent = self.model.context(rows, mask, true_param)
         if not np.all(np.isfinite(latent)):
@@ -162,10 +167,10 @@ class ContextNode(Node):
             self.family_checked = False
             self.received_at = {s: t for s, t in self.received_at.items() if s == stamp}
 
-    def _note(self, header) -> None:
+    def _note(self, header: Header) -> None:
         self.received_at.setdefault(stamp_ns(header), time.monotonic())
 
-    def _publish_for(self, record) -> None:
+    def _publish_for(self, record: StateRecord | None) -> None:
         if record is None:
             return
         true_param = self.true_param if self.model.needs_true_param else None
@@ -197,7 +202,7 @@ class ContextNode(Node):
                                                       values, problem))
 
 
-def main(args=None) -> int:
+def main(args: list[str] | None = None) -> int:
     return run_node(ContextNode, args, fatal=(CheckpointError, GraphMismatch))
 
 

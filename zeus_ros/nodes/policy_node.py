@@ -30,6 +30,7 @@ stop_guard.install('policy_node', __name__)
 import math
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
@@ -48,6 +49,9 @@ from zeus_ros.ros.pairing import (BadMessage, forget_received, observation_from_
 from zeus_ros.ros.util import (declare_double, describe, diagnostic_array, FirstContact,
                                LOOP_QOS, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings)
+
+if TYPE_CHECKING:
+    from rclpy.parameter import Parameter
 
 
 class PolicyNode(Node):
@@ -89,7 +93,7 @@ class PolicyNode(Node):
         self.create_timer(1.0, self.diagnostics_callback)
         self.add_post_set_parameters_callback(self.parameters_callback)
 
-    def parameters_callback(self, params) -> None:
+    def parameters_callback(self, params: list[Parameter]) -> None:
         for param in params:
             if param.name == 'context_timeout':
                 self.pairer.context_timeout = float(param.value)
@@ -205,7 +209,7 @@ class PolicyNode(Node):
                                                       values, problem))
 
 
-def main(args=None) -> int:
+def main(args: list[str] | None = None) -> int:
     return run_node(PolicyNode, args, fatal=(CheckpointError, GraphMismatch))
 
 

@@ -28,7 +28,7 @@ import signal
 import sys
 
 
-def _exit_quietly(_signum, _frame) -> None:
+def _exit_quietly(_signum: int, _frame: FrameType | None) -> None:
     os._exit(0)  # nothing to clean up: no ROS context exists before run_node
 
 
@@ -46,6 +46,7 @@ if __name__ == '__main__' or os.path.basename(sys.argv[0]) == 'sim_node':
 
 import threading
 import time
+from typing import Sequence, TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, SetParametersResult
@@ -74,6 +75,9 @@ from zeus_ros.ros.util import (accept_integers_for_doubles, declare_double,
                                LOOP_QOS as STATE_QOS, parameter_names, RateMeter, run_node,
                                set_stamp, stamp_ns, ThrottledWarnings, TickLateness,
                                unknown_overrides, UnknownParameters)
+
+if TYPE_CHECKING:
+    from types import FrameType
 
 # What rclpy declares on every node.
 RCLPY_PARAMETERS = ('use_sim_time', 'start_type_description_service')
@@ -202,7 +206,7 @@ class SimNode(Node):
                 else "the family's live parameters")
         return f'its parameters: {", ".join(live)} ({what}), {", ".join(others)}'
 
-    def _values_text(self, values) -> str:
+    def _values_text(self, values: Sequence[float]) -> str:
         return ', '.join(f'{n}={v:g}' for n, v in zip(self.live_names, values, strict=True))
 
     def _live_changes(self, params: list[Parameter]) -> dict[str, float]:
@@ -378,7 +382,7 @@ class SimNode(Node):
         return '; '.join(p for p in (commands, loop) if p) or None
 
 
-def main(args=None) -> int:
+def main(args: list[str] | None = None) -> int:
     # A bad family, initial parameter value or unknown parameter: say which, exit 1.
     return run_node(SimNode, args, fatal=(ValueError,))
 

@@ -42,13 +42,15 @@ from dataclasses import asdict, dataclass, field, replace
 import json
 from pathlib import Path
 import sys
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 from scipy.stats import spearmanr
 
 from sim_node.env import make_env
-from sim_node.families import as_values, format_task, get_sim_family
+from sim_node.families import as_values, format_task, get_sim_family, SimFamily, Task
 from sim_node.family_env import FamilyEnv
+from sim_node.layout import StepResult
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.learning_tools.evaluate import EpisodeProbe, run_episode
@@ -157,27 +159,27 @@ class ZeroedContext(EpisodeProbe):
     def __init__(self, model: InferenceModel):
         self.zeros = np.zeros(model.context_dim, np.float32)
 
-    def latent(self, latent) -> np.ndarray:  # noqa: ARG002 (EpisodeProbe's signature)
+    def latent(self, latent: np.ndarray) -> np.ndarray:  # noqa: ARG002 (EpisodeProbe's signature)
         return self.zeros
 
 
 class FrozenContext(EpisodeProbe):
     """The policy sees one fixed latent taken from an episode at another value."""
 
-    def __init__(self, latent: np.ndarray, other_value):
+    def __init__(self, latent: np.ndarray, other_value: Task):
         self.frozen, self.other = latent.astype(np.float32), other_value
 
     def true_param(self, env: FamilyEnv) -> float | tuple[float, ...]:  # noqa: ARG002 (EpisodeProbe's signature)
         return self.other
 
-    def latent(self, latent) -> np.ndarray:  # noqa: ARG002 (EpisodeProbe's signature)
+    def latent(self, latent: np.ndarray) -> np.ndarray:  # noqa: ARG002 (EpisodeProbe's signature)
         return self.frozen
 
 
 class OtherPhysicsWindow(EpisodeProbe):
     """The window holds (s, a, r', s'') simulated from the same s and a at another value."""
 
-    def __init__(self, family: str, other_value, max_steps: int,
+    def __init__(self, family: str, other_value: Task, max_steps: int,
                  reward_in_obs: bool = False):
         self.shadow = make_env(family, as_values(other_value), seed=0, episode_steps=max_steps,
                                reward_in_obs=reward_in_obs)
@@ -191,7 +193,7 @@ class OtherPhysicsWindow(EpisodeProbe):
         self.shadow.copy_state_from(env)
         self.counterfactual = self.shadow.step(action)
 
-    def window_transition(self, result) -> tuple[float, np.ndarray]:  # noqa: ARG002 (EpisodeProbe's signature)
+    def window_transition(self, result: StepResult) -> tuple[float, np.ndarray]:  # noqa: ARG002 (EpisodeProbe's signature)
         return self.counterfactual.reward, self.counterfactual.observation
 
 
@@ -204,29 +206,30 @@ class SpeedRecorder(EpisodeProbe):
     def before_step(self, env: FamilyEnv, action: np.ndarray) -> None:  # noqa: ARG002 (EpisodeProbe's signature)
         self.env = env
 
-    def window_transition(self, result) -> tuple[float, np.ndarray]:
+    def window_transition(self, result: StepResult) -> tuple[float, np.ndarray]:
         self.speeds.append(float(self.env.physics.speed()))
         return result.reward, result.observation
 
 
 # -- measures ----------------------------------------------------------------------
-def _episodes(model, value, cfg: ReportConfig, probe_factory=None, **kwargs):
+def _episodes(model: InferenceModel, value: Task, cfg: ReportConfig,
+              probe_factory: Callable[[], EpisodeProbe] | None = None, **kwargs):
     return [run_episode(model, model.family, value, cfg.seed + e, max_steps=cfg.max_steps,
                         probe=probe_factory() if probe_factory else None, **kwargs)
             for e in range(cfg.episodes)]
 
 
-def _sem(values) -> float:
+def _sem(values: Sequence[float]) -> float:
     values = np.asarray(values, float)
     return float(values.std(ddof=1) / np.sqrt(values.size)) if values.size > 1 else 0.0
 
 
-def value_key(value) -> str:
+def value_key(value: Task) -> str:
     """Return a value as the report's keys name it: str(v), or '0.44 -0.07' for a tuple."""
     return str(value) if isinstance(value, float | int) else format_task(value)
 
 
-def split_returns(spec, records: dict) -> list[SplitReturn]:
+def split_returns(spec: SimFamily, records: dict) -> list[SplitReturn]:
     """Per-split mean return (and its standard error over values), and success rate."""
     out = []
     for split in ('train', *HELD_OUT):
@@ -243,20 +246,21 @@ def split_returns(spec, records: dict) -> list[SplitReturn]:
     return out
 
 
-def held_out_values(spec, split: str) -> tuple:
+def held_out_values(spec: SimFamily, split: str) -> tuple:
     """Return a split's values that are not also train values (held-out: never trained on)."""
     train = set(spec.split('train'))
     return tuple(v for v in spec.split(split) if v not in train)
 
 
-def r_squared(truth, estimate) -> float:
+def r_squared(truth: np.ndarray, estimate: np.ndarray) -> float:
     """Coefficient of determination of `estimate` for `truth`."""
     truth, estimate = np.asarray(truth, float), np.asarray(estimate, float)
     total = ((truth - truth.mean()) ** 2).sum()
     return float(1.0 - ((truth - estimate) ** 2).sum() / total) if total > 0 else float('nan')
 
 
-def identification(model, values, records: dict) -> Identification:
+def identification(model: InferenceModel, values: Sequence[Task],
+                   records: dict) -> Identification:
     """R^2 over full-window steps and rank correlation of episode means, held-out values.
 
     Per parameter; the headline figures are those of the one parameter, or
@@ -283,7 +287,8 @@ def identification(model, values, records: dict) -> Identification:
                           means, r2, rho)
 
 
-def steps_to_cover(estimates: np.ndarray, swap_step: int, before, after) -> int | None:
+def steps_to_cover(estimates: np.ndarray, swap_step: int, before: Task,
+                   after: Task) -> int | None:
     """First step count after the swap at which 70 % of the true change is covered.
 
     For several parameters, the estimate's move is projected on the change vector.
@@ -296,21 +301,22 @@ def steps_to_cover(estimates: np.ndarray, swap_step: int, before, after) -> int 
     return int(hits[0]) if hits.size else None
 
 
-def _farthest_pair(values) -> tuple:
+def _farthest_pair(values: Sequence[Task]) -> tuple:
     """Return the two values farthest apart (a one-parameter split: its extremes)."""
     pairs = [(a, b) for a in values for b in values]
     return max(pairs, key=lambda p: _distance(*p))
 
 
-def _distance(a, b) -> float:
+def _distance(a: Task, b: Task) -> float:
     return float(np.linalg.norm(np.subtract(as_values(a), as_values(b))))
 
 
-def _json_value(value):
+def _json_value(value: Task) -> float | list[float]:
     return value if isinstance(value, float | int) else list(as_values(value))
 
 
-def swap_responses(model, spec, cfg: ReportConfig) -> list[SwapResponse]:
+def swap_responses(model: InferenceModel, spec: SimFamily,
+                   cfg: ReportConfig) -> list[SwapResponse]:
     """Live swaps between the extremes of the train and of the extrapolation values."""
     a, b = _farthest_pair(spec.train)
     pairs = [(a, b), (b, a)]
@@ -328,7 +334,8 @@ def swap_responses(model, spec, cfg: ReportConfig) -> list[SwapResponse]:
     return out
 
 
-def speed_recorded_episodes(model, values, cfg: ReportConfig) -> tuple[dict, dict]:
+def speed_recorded_episodes(model: InferenceModel, values: Iterable[Task],
+                            cfg: ReportConfig) -> tuple[dict, dict]:
     """Run the report's episodes per value, recording the robot's speed at every step.
 
     The recorder changes nothing the policy sees, so the records are those of
@@ -343,7 +350,7 @@ def speed_recorded_episodes(model, values, cfg: ReportConfig) -> tuple[dict, dic
     return records, speeds
 
 
-def velocity_error(spec, speeds: dict) -> VelocityError:
+def velocity_error(spec: SimFamily, speeds: dict) -> VelocityError:
     """Return the mean absolute speed error per target value and per split.
 
     The issue's figure for cheetah-run-v1, whose return is negative by construction.
@@ -357,17 +364,18 @@ def velocity_error(spec, speeds: dict) -> VelocityError:
     return VelocityError(per_value, per_split)
 
 
-def farthest_train_value(spec, value) -> float | tuple[float, ...]:
+def farthest_train_value(spec: SimFamily, value: Task) -> float | tuple[float, ...]:
     """Return the training value farthest from `value` (the most different physics seen)."""
     return max(spec.train, key=lambda t: _distance(t, value))
 
 
-def held_out_split(spec) -> str:
+def held_out_split(spec: SimFamily) -> str:
     """Name the split where a context is needed if anywhere: extrapolation, else interpolation."""
     return 'extrapolation' if spec.extrapolation else 'interpolation'
 
 
-def context_use(model, spec, cfg: ReportConfig, records: dict, split: str) -> ContextUse:
+def context_use(model: InferenceModel, spec: SimFamily, cfg: ReportConfig, records: dict,
+                split: str) -> ContextUse:
     """Measure returns at one split's values, context intact and perturbed."""
     values = spec.split(split) if split == 'train' else held_out_values(spec, split)
     rows = {'intact': [], 'zeroed': [], 'frozen_other': [], 'inferred_other': []}
@@ -461,7 +469,7 @@ def print_report(report: AdaptationReport) -> None:
         print(f'  at the {use.split} values the policy {use.verdict}')
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Console entry point (`adaptation_report`)."""
     p = argparse.ArgumentParser(prog='adaptation_report', description=__doc__.split('\n')[0])
     p.add_argument('--weights', required=True, help='checkpoint dir or run dir')

@@ -28,14 +28,16 @@ import argparse
 import math
 from dataclasses import dataclass, field
 import sys
+from typing import Sequence
 
 import numpy as np
 
 from sim_node.env import make_env
-from sim_node.families import as_values, format_task, get_sim_family, SPLITS
+from sim_node.families import as_values, format_task, get_sim_family, SPLITS, Task
 from sim_node.family_env import FamilyEnv
+from sim_node.layout import StepResult
 from zeus_ros.deploy.checkpoint import CheckpointError
-from zeus_ros.deploy.inference import InferenceModel
+from zeus_ros.deploy.inference import DeployedModel, InferenceModel
 from zeus_ros.core.window import ContextWindow
 
 
@@ -73,7 +75,7 @@ class EpisodeProbe:
     def before_step(self, env: FamilyEnv, action: np.ndarray) -> None:
         """See the state and action just before the env steps."""
 
-    def window_transition(self, result) -> tuple[float, np.ndarray]:
+    def window_transition(self, result: StepResult) -> tuple[float, np.ndarray]:
         """(r, s') pushed into the window for the step just taken."""
         return result.reward, result.observation
 
@@ -94,14 +96,15 @@ class _Recorder:
                              np.asarray(r['est']), float(np.sum(r['rew'])), self.instability)
 
 
-def model_env(model: InferenceModel, value=None, seed: int | None = 0,
+def model_env(model: DeployedModel, value: Task | None = None, seed: int | None = 0,
               family: str | None = None, **kwargs) -> FamilyEnv:
     """Make an env (of the model's family by default) observing what the model reads."""
     return make_env(family or model.family, None if value is None else as_values(value),
                     seed=seed, reward_in_obs=model.reward_in_observation, **kwargs)
 
 
-def _episode_env(model, family, value, seed, max_steps, env) -> FamilyEnv:
+def _episode_env(model: DeployedModel, family: str, value: Task | None, seed: int,
+                 max_steps: int | None, env: FamilyEnv | None) -> FamilyEnv:
     if env is None:
         kwargs = {} if max_steps is None else {'episode_steps': max_steps}
         return model_env(model, value, seed, family, **kwargs)
@@ -114,7 +117,7 @@ def _episode_env(model, family, value, seed, max_steps, env) -> FamilyEnv:
     return env
 
 
-def run_episode(model: InferenceModel, family: str, value, seed: int,
+def run_episode(model: DeployedModel, family: str, value: Task | None, seed: int,
                 swap_schedule: dict | None = None, max_steps: int | None = None,
                 env: FamilyEnv | None = None, probe: EpisodeProbe | None = None) -> EpisodeRecord:
     """Run one deterministic episode in the ROS loop's order; return per-step records."""
@@ -150,7 +153,7 @@ def run_episode(model: InferenceModel, family: str, value, seed: int,
     return record
 
 
-def evaluate(model: InferenceModel, values, episodes: int, seed: int,
+def evaluate(model: InferenceModel, values: Sequence[Task], episodes: int, seed: int,
              max_steps: int | None = None) -> list[dict]:
     """Mean/std return, mean decoder estimate(s) and, where the task has one, success rate.
 
@@ -179,7 +182,7 @@ def _mean_estimate(model: InferenceModel, recs: list[EpisodeRecord]):
     return float(values[0]) if count == 1 else tuple(float(x) for x in values)
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Console entry point (`eval`)."""
     p = argparse.ArgumentParser(prog='eval', description=__doc__.split('\n')[0])
     p.add_argument('--weights', required=True, help='checkpoint dir or run dir')

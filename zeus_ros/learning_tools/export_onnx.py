@@ -80,7 +80,7 @@ def largest_differences(a: DeployedModel, b: DeployedModel,
     return worst
 
 
-def parse_args(argv=None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--weights', required=True,
                         help='checkpoint directory (or a run directory holding checkpoint/)')
@@ -92,7 +92,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         out = export_onnx(args.weights, args.out)

@@ -115,7 +115,7 @@ def run_sweep(cfg: SweepConfig, resume: bool, address: str | None) -> int:
     return 1 if errors else 0
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Console entry point (`sweep`)."""
     p = argparse.ArgumentParser(prog='sweep', description=__doc__.split('\n')[0])
     sub = p.add_subparsers(dest='command', required=True)

@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 import os
 from pathlib import Path
+from typing import Iterable
 
 import yaml
 
@@ -47,7 +48,7 @@ class SweepConfig:
     overrides: dict = field(default_factory=dict)
 
     @classmethod
-    def load(cls, path) -> 'SweepConfig':
+    def load(cls, path: str | Path) -> 'SweepConfig':
         """Read and check a sweep file; ValueError says what is wrong."""
         raw = yaml.safe_load(Path(path).read_text()) or {}
         unknown = set(raw) - {f.name for f in fields(cls)}
@@ -76,7 +77,7 @@ class SweepConfig:
                 for f in self.families for m in self.methods for s in self.seeds]
 
 
-def _check_overrides(overrides: dict, methods) -> None:
+def _check_overrides(overrides: dict, methods: Iterable[str]) -> None:
     """Refuse a bad override now, not hours into the grid: every method must take each key."""
     run_owned = sorted(set(overrides) & set(RUN_KEYS))
     if run_owned:

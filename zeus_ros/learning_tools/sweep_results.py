@@ -23,10 +23,14 @@ import csv
 from dataclasses import asdict, dataclass, field
 import json
 from pathlib import Path
+from typing import Callable, Sequence, TYPE_CHECKING
 
 import numpy as np
 
 from zeus_ros.learning_tools.sweep_config import run_dir, SweepConfig
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 SPLIT_ORDER = ('train', 'interpolation', 'extrapolation')
 
@@ -56,7 +60,7 @@ def read_curve(path: Path) -> Curve | None:
                  {s: tuple(float(np.mean(by_step[t][s])) for t in steps) for s in splits})
 
 
-def mean_sem(values) -> tuple[float, float]:
+def mean_sem(values: Sequence[float]) -> tuple[float, float]:
     """Mean and standard error of the mean (0 for a single value)."""
     v = np.asarray(values, float)
     sem = float(v.std(ddof=1) / np.sqrt(v.size)) if v.size > 1 else 0.0
@@ -82,7 +86,7 @@ def finished(run: Path, steps: int) -> bool:
         load_metadata(checkpoint).steps.timestep >= steps
 
 
-def table_rows(curves: dict, is_finished) -> list[dict]:
+def table_rows(curves: dict, is_finished: Callable[[str, str, int], bool]) -> list[dict]:
     """Last-evaluation rows of the finished runs (`is_finished(family, method, seed)`).
 
     Each row: family, method, split, mean, sem, seeds, timestep (of the last
@@ -304,7 +308,7 @@ def mean_curve(runs: dict, split: str) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return np.asarray(usable[0].env_steps[:n]), ys.mean(0), sem, len(ys)
 
 
-def _plot_method(ax, runs: dict, split: str, method: str) -> None:
+def _plot_method(ax: Axes, runs: dict, split: str, method: str) -> None:
     curve = mean_curve(runs, split)
     if curve is None:
         return

@@ -31,6 +31,7 @@ import signal
 import sys
 import threading
 import time
+from typing import Iterable, Sequence, TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -54,6 +55,9 @@ from zeus_ros.core.replay import ReplayBuffer
 from zeus_ros.core.settings import add_arguments, parse_text, setting
 from zeus_ros.core.window import ContextWindow
 from zeus_ros.learning_tools.evaluate import evaluate
+
+if TYPE_CHECKING:
+    from types import FrameType
 
 # The train log's first columns; the agent's metric names follow (Agent.metric_names).
 RUN_COLUMNS = ('timestep', 'env_steps', 'wall_s', 'env_steps_per_s')
@@ -99,7 +103,7 @@ class CsvLog:
     rewritten with it, empty in the rows before.
     """
 
-    def __init__(self, path: Path, columns):
+    def __init__(self, path: Path, columns: Sequence[str]):
         self.path = path
         new = not path.exists() or path.stat().st_size == 0
         self.columns = tuple(columns) if new else self._header()
@@ -113,7 +117,7 @@ class CsvLog:
         with open(self.path, newline='') as existing:
             return tuple(next(csv.reader(existing), ()))
 
-    def widen(self, names) -> None:
+    def widen(self, names: Iterable[str]) -> None:
         """Append the names the header lacks, rewriting the rows written so far."""
         missing = [n for n in dict.fromkeys(names) if n not in self.columns]
         if not missing:
@@ -140,7 +144,7 @@ class CsvLog:
         self.file.close()
 
 
-def parse_overrides(items) -> dict:
+def parse_overrides(items: Iterable[str] | None) -> dict:
     """`key=value` strings -> config overrides typed by the fields (a later key wins).
 
     ValueError names a malformed item, a key no config dataclass has, a key
@@ -409,7 +413,7 @@ class Trainer:
             metrics = self.agent.update(self.replay.sample(self.batch_size))
             self.logs.accumulate(metrics)
 
-    def _periodic(self, bar) -> bool:
+    def _periodic(self, bar: tqdm) -> bool:
         """Log, evaluate and checkpoint when due at this timestep; True = stop now."""
         args = self.args
         if self.timestep % args.log_every == 0:
@@ -494,7 +498,7 @@ class TrainingLogs:
     def restart_rate(self, tr: Trainer) -> None:
         self.last_t, self.last_env = time.monotonic(), tr.env_steps
 
-    def train_row(self, tr: Trainer, bar) -> None:
+    def train_row(self, tr: Trainer, bar: tqdm) -> None:
         now = time.monotonic()
         row = {k: self.sums[k] / self.counts[k] for k in self.sums}
         row.update(timestep=tr.timestep, env_steps=tr.env_steps, wall_s=round(tr.wall_s(), 2),
@@ -535,11 +539,11 @@ class TrainingLogs:
             log.close()
 
 
-def _raise_interrupt(signum, frame):  # noqa: ARG001 (a signal handler's)
+def _raise_interrupt(signum: int, frame: FrameType | None):  # noqa: ARG001 (a signal handler's)
     raise KeyboardInterrupt(f'signal {signum}')
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Console entry point (`train`)."""
     parser = build_parser()
     try:

@@ -27,7 +27,7 @@ NODES = (('sim_node', 'zeus_ros.nodes.sim_node'), ('context_node', 'zeus_ros.nod
 COMPOSED = ('composed', 'zeus_ros.ros_tools.composed')
 
 
-def parse_args(argv=None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--weights', required=True, help='checkpoint directory')
     parser.add_argument('--family', help="environment family (default: the weights')")
@@ -138,7 +138,7 @@ class Bringup:
                 proc.wait()
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from zeus_ros.deploy.checkpoint import CheckpointError
     try:

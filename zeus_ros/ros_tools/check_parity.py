@@ -26,8 +26,19 @@ import os
 from pathlib import Path
 import sys
 import time
+from typing import Callable, TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    # Imported where they are used (a report needs no ROS), named here for the types.
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+    from zeus_msgs.msg import Context, StepInfo
+
+    from sim_node.families import SimFamily
+    from sim_node.layout import ObservationLayout
+    from zeus_ros.deploy.inference import DeployedModel
 
 QUANTITIES = ('observation', 'context', 'action', 'reward')   # in the order a step makes them
 STARTUP_S = 300.0  # the nodes' start-up (minutes on a loaded machine), before the episode's limit
@@ -77,7 +88,8 @@ def first_difference(reference: Trace, ros: Trace) -> Difference | None:
     return None
 
 
-def _difference(step: int, differing: list[str], a, b) -> Difference:
+def _difference(step: int, differing: list[str], a: np.ndarray | float,
+                b: np.ndarray | float) -> Difference:
     a, b = np.atleast_1d(np.asarray(a, np.float64)), np.atleast_1d(np.asarray(b, np.float64))
     if a.shape != b.shape:
         return Difference(step, differing[0], 0, a.size, b.size, np.inf, tuple(differing[1:]))
@@ -105,7 +117,8 @@ def describe(difference: Difference | None, steps: int) -> str:
     return f'first difference at step {d.step}: {d.quantity} ({what}){also}'
 
 
-def in_process_trace(model, family: str, values: tuple, seed: int, steps: int) -> Trace:
+def in_process_trace(model: DeployedModel, family: str, values: tuple, seed: int,
+                     steps: int) -> Trace:
     """Run the episode's first `steps` steps in process (the reference)."""
     from zeus_ros.learning_tools.evaluate import run_episode
     record = run_episode(model, family, values, seed, max_steps=steps)
@@ -120,7 +133,8 @@ class RosEpisode:
     so the sim steps no further than the tool has heard (lockstep waits).
     """
 
-    def __init__(self, node, layout, node_failure):
+    def __init__(self, node: Node, layout: ObservationLayout,
+                 node_failure: Callable[[], tuple[str, int] | None]):
         from rclpy.qos import QoSProfile
         from sensor_msgs.msg import JointState
         from zeus_msgs.msg import Context, StepInfo
@@ -139,17 +153,18 @@ class RosEpisode:
         self.reset_client = node.create_client(Reset, '/sim_node/reset')
         self.spinner = spin_in_background(node)
 
-    def _on_step(self, msg) -> None:
+    def _on_step(self, msg: StepInfo) -> None:
         self.rows.append(msg)
         self.gate.on_state(msg)
 
-    def _on_state(self, msg) -> None:
+    def _on_state(self, msg: JointState) -> None:
         self.states[_stamp(msg)] = msg
 
-    def _on_context(self, msg) -> None:
+    def _on_context(self, msg: Context) -> None:
         self.contexts[_stamp(msg)] = msg
 
-    def _wait(self, predicate, deadline: float, what: str, heard=lambda: '') -> None:
+    def _wait(self, predicate: Callable[[], object], deadline: float, what: str,
+              heard: Callable[[], str] = lambda: '') -> None:
         from zeus_ros.ros.loop_spin import wait_until
         while not wait_until(predicate, 0.2):
             failure = self.node_failure()
@@ -222,13 +237,13 @@ class RosEpisode:
         return Trace(*(np.asarray(columns[q]) for q in QUANTITIES))
 
 
-def _stamp(msg) -> int:
+def _stamp(msg: StepInfo | JointState | Context) -> int:
     from zeus_ros.ros.util import stamp_ns
     return stamp_ns(msg.header)
 
 
-def ros_trace(weights: Path, family: str, layout, values: tuple, seed: int, steps: int,
-              max_seconds: float) -> Trace:
+def ros_trace(weights: Path, family: str, layout: ObservationLayout, values: tuple, seed: int,
+              steps: int, max_seconds: float) -> Trace:
     """Run the episode's first `steps` steps through the three nodes (own processes)."""
     import rclpy
     from sim_node.families import get_sim_family
@@ -254,7 +269,7 @@ def ros_trace(weights: Path, family: str, layout, values: tuple, seed: int, step
         bringup.stop()
 
 
-def parse_args(argv=None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog='check_parity', description=__doc__.split('\n')[0])
     parser.add_argument('--weights', type=Path, required=True, help='checkpoint directory')
     parser.add_argument('--family', help="environment family (default: the weights')")
@@ -283,7 +298,7 @@ class Setup:
     ros_values: tuple
 
 
-def _values(text: str | None, spec) -> tuple:
+def _values(text: str | None, spec: SimFamily) -> tuple:
     if text is None:
         return tuple(p.default for p in spec.live_params)
     values = tuple(float(v) for v in text.split(','))
@@ -319,7 +334,7 @@ def setup(args: argparse.Namespace) -> Setup:
                  values, ros_values)
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Console entry point (`check_parity`)."""
     from zeus_ros.deploy.checkpoint import CheckpointError
     from zeus_ros.ros.graph import use_free_domain

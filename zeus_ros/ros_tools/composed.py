@@ -41,7 +41,7 @@ NODE_CLASSES = (SimNode, ContextNode, PolicyNode)
 FATAL = (ValueError, CheckpointError, GraphMismatch)
 
 
-def main(args=None) -> int:
+def main(args: list[str] | None = None) -> int:
     return run_nodes(NODE_CLASSES, args, fatal=FATAL, name='composed')
 
 

@@ -38,7 +38,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Any
+from typing import Any, Callable, TYPE_CHECKING
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 # The video's off-screen GL: the caller's MUJOCO_GL, else EGL. 'disable' is
@@ -64,6 +64,11 @@ from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background
                                 wait_until)
 from zeus_ros.ros_tools.recording import BagRecorder, RECORD_DEPTH, TopicSpec  # noqa: E402
 from zeus_ros.ros.util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from rclpy.client import Client
+    from rclpy.node import Node
 
 RECORDED_TOPICS = {
     '/joint_states': TopicSpec('sensor_msgs/msg/JointState', LOOP_QOS),
@@ -121,7 +126,7 @@ def parse_schedule(text: str) -> list[Swap]:
     return schedule
 
 
-def parse_args(argv=None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--weights', required=True, help='checkpoint directory')
     parser.add_argument('--reference-weights', type=Path,
@@ -158,7 +163,7 @@ class CommandGate:
     Callbacks come from spin_loop's thread, `open_until` from the demo's.
     """
 
-    def __init__(self, node):
+    def __init__(self, node: Node):
         self._lock = threading.Lock()
         self._publisher = node.create_publisher(JointState, '/joint_commands', LOOP_QOS)
         self.states: dict[int, tuple[int, int]] = {}   # stamp -> (episode, step)
@@ -307,7 +312,8 @@ class DemoRun:
     receiver on rclpy's executor falls behind the loop), with deep queues.
     """
 
-    def __init__(self, node, param_name: str, bag_dir: Path, node_failure):
+    def __init__(self, node: Node, param_name: str, bag_dir: Path,
+                 node_failure: Callable[[], tuple[str, int] | None]):
         self.node, self.param_name, self.node_failure = node, param_name, node_failure
         self.rows: list[StepInfo] = []
         self.contexts: dict[int, Context] = {}
@@ -333,7 +339,7 @@ class DemoRun:
         self.spinner.join(timeout=5.0)
         self.recorder.close()
 
-    def wait(self, predicate, deadline: float, what: str) -> None:
+    def wait(self, predicate: Callable[[], object], deadline: float, what: str) -> None:
         """Wait for `predicate()`; DemoFailure if a node exits or `deadline` passes first."""
         while not predicate():
             self._check_nodes(what)
@@ -362,7 +368,8 @@ class DemoRun:
                               'did not produce: run it on a domain of its own '
                               '(--domain-id auto)')
 
-    def call(self, client, request, timeout: float = 30.0) -> Any:
+    # `request`: the client's service type's Request message, passed on as it is.
+    def call(self, client: Client, request: object, timeout: float = 30.0) -> Any:
         if not client.wait_for_service(timeout_sec=timeout):
             raise DemoFailure(f'{client.srv_name} is not available')
         try:
@@ -538,7 +545,7 @@ def _policy_name(policy: Policy) -> str:
     return f'{policy.method}, no context' if policy.context_dim == 0 else policy.method
 
 
-def _plot_returns(ax, segments: list[Segment], adaptive: Policy,
+def _plot_returns(ax: Axes, segments: list[Segment], adaptive: Policy,
                   reference: Policy | None) -> None:
     x, width = np.arange(len(segments)), 0.38 if reference else 0.6
     ax.bar(x - width / 2 if reference else x, [s.episode_return for s in segments], width,
@@ -559,7 +566,7 @@ def _plot_returns(ax, segments: list[Segment], adaptive: Policy,
     ax.legend(loc='upper center', ncol=2, fontsize=8)
 
 
-def _plot_parameter(ax, run: RunRecord) -> None:
+def _plot_parameter(ax: Axes, run: RunRecord) -> None:
     name, steps = run.policy.param_name, [s.step for s in run.rows]
     ax.plot(steps, [s.param_values[0] for s in run.rows], color='black', label=f'true {name}')
     ax.plot(steps, [_estimate(run.contexts[stamp_ns(s.header)]) for s in run.rows],
@@ -684,7 +691,7 @@ def own_domain(choice: str) -> DomainClaim | None:
     return None
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         policies = load_policies(args)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from typing import Callable, Sequence, TYPE_CHECKING
 
 import foxglove
 from foxglove.channels import RawImageChannel
@@ -37,6 +38,9 @@ from sensor_msgs.msg import Image, JointState
 from zeus_msgs.msg import Context, StepInfo
 
 from zeus_ros.ros.util import run_node
+
+if TYPE_CHECKING:
+    from std_msgs.msg import Header
 
 # Never beyond this machine: the view has no authentication.
 HOST = '127.0.0.1'
@@ -79,19 +83,19 @@ class ServeError(RuntimeError):
     """The WebSocket server could not start (port taken, bad port)."""
 
 
-def finite(value) -> float | None:
+def finite(value: float) -> float | None:
     """Return a float for JSON: None for NaN and inf, which JSON cannot carry."""
     value = float(value)
     return value if math.isfinite(value) else None
 
 
-def header_json(header) -> dict:
+def header_json(header: Header) -> dict:
     """Return a header with its stamp as Foxglove reads one (sec, nsec)."""
     return {'stamp': {'sec': int(header.stamp.sec), 'nsec': int(header.stamp.nanosec)},
             'frame_id': header.frame_id}
 
 
-def _first(values) -> float | None:
+def _first(values: Sequence[float]) -> float | None:
     return finite(values[0]) if len(values) else None
 
 
@@ -153,10 +157,11 @@ class FoxgloveView(Node):
                                'connection > Foxglove WebSocket; layout '
                                'config/foxglove_layout.json)')
 
-    def _forward(self, topic: str, convert):
+    # `convert`: the topic's message -> what its channel logs (raw_image, step_json, ...).
+    def _forward(self, topic: str, convert: Callable):
         channel = self.channels[topic]
 
-        def callback(msg) -> None:
+        def callback(msg: Image | JointState | StepInfo | Context) -> None:
             if channel.has_sinks():  # no client subscribed: skip the conversion
                 channel.log(convert(msg))
         return callback

@@ -24,14 +24,20 @@ from pathlib import Path
 import re
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from ament_index_python.packages import get_package_share_directory
 from mcap.writer import CompressionType, Writer
-from rclpy.duration import Infinite
+from rclpy.duration import Duration, Infinite
 from rclpy.qos import HistoryPolicy, QoSProfile
 import yaml
 
 from zeus_ros.ros.loop_spin import create_loop_subscription
+
+if TYPE_CHECKING:
+    from dm_control.mujoco import Physics
+    import PIL.Image
+    from rclpy.node import Node
 
 _SEPARATOR = '=' * 80
 _PRIMITIVES = {'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16',
@@ -99,7 +105,7 @@ def type_description_hash(type_name: str) -> str:
 
 
 # -- QoS as rosbag2 >= version 9 writes it (rosbag2_storage/qos.cpp) ---------------------
-def _rmw_time(duration) -> dict:
+def _rmw_time(duration: Duration) -> dict:
     ns = duration.nanoseconds
     return {'sec': ns // _NS, 'nsec': ns % _NS}
 
@@ -115,7 +121,7 @@ def qos_entry(profile: QoSProfile) -> dict:
             'avoid_ros_namespace_conventions': bool(profile.avoid_ros_namespace_conventions)}
 
 
-def offered_profiles(node, topic: str, declared: QoSProfile) -> list[QoSProfile]:
+def offered_profiles(node: Node, topic: str, declared: QoSProfile) -> list[QoSProfile]:
     """QoS of each publisher of `topic` the graph knows, as `ros2 bag record` stores them.
 
     DDS discovery carries reliability, durability, deadline, lifespan and
@@ -264,7 +270,7 @@ class BagRecorder:
     discovery); topics that never sent one are added, empty, at close.
     """
 
-    def __init__(self, node, bag_dir: Path, topics: dict[str, TopicSpec],
+    def __init__(self, node: Node, bag_dir: Path, topics: dict[str, TopicSpec],
                  depth: int = RECORD_DEPTH):
         self.node, self.specs = node, topics
         self.bag = BagWriter(bag_dir)
@@ -353,7 +359,7 @@ def _caption(frames: EpisodeFrames, stamp: int) -> str:
 _SCENE_COLOURS = 62   # + black and white for the caption: 64, GIF's 256 are not needed
 
 
-def _gif_frame(image, text: str):
+def _gif_frame(image: PIL.Image.Image, text: str):
     """Return the rendered frame in 62 colours, the caption in black and white on top.
 
     Fewer colours make the GIF 40 % smaller and quicker to write with no loss
@@ -398,7 +404,7 @@ def _gl_physics(family: str, value: float):
     return physics
 
 
-def _frame(physics, names: list[str], positions: list[float], size: tuple[int, int]):
+def _frame(physics: Physics, names: list[str], positions: list[float], size: tuple[int, int]):
     from PIL import Image
     for name, position in zip(names, positions, strict=True):
         physics.named.data.qpos[name] = position
@@ -436,7 +442,7 @@ def render_video(bag_dir: Path, out: Path, every: int = 4, size: tuple[int, int]
     return len(images)
 
 
-def _video_main(argv) -> int:
+def _video_main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog='python -m zeus_ros.ros_tools.recording video',
                                      description=render_video.__doc__.split('\n')[0])
     parser.add_argument('bag', type=Path, help='rosbag2 directory')
@@ -472,7 +478,7 @@ def bag_summary(bag: Path) -> str:
     return '\n'.join(lines)
 
 
-def _info_main(argv) -> int:
+def _info_main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog='python -m zeus_ros.ros_tools.recording info',
                                      description=bag_summary.__doc__.split('\n')[0])
     parser.add_argument('bag', type=Path, help='rosbag2 directory')

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import TYPE_CHECKING
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
@@ -22,6 +23,9 @@ from rcl_interfaces.srv import SetParameters  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 import yaml  # noqa: E402
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 
 def parse_value(text: str) -> bool | int | float | str:
@@ -33,7 +37,8 @@ def parse_value(text: str) -> bool | int | float | str:
     return value if isinstance(value, bool | int | float | str) else text
 
 
-def set_parameter(node, target: str, name: str, value, timeout: float) -> tuple[bool, str]:
+def set_parameter(node: Node, target: str, name: str, value: bool | int | float | str,
+                  timeout: float) -> tuple[bool, str]:
     """Set one parameter of the node `target`; return (success, reason)."""
     client = node.create_client(SetParameters, f'{target.rstrip("/")}/set_parameters')
     if not client.wait_for_service(timeout_sec=timeout):
@@ -47,7 +52,7 @@ def set_parameter(node, target: str, name: str, value, timeout: float) -> tuple[
     return result.successful, result.reason
 
 
-def main(args=None) -> int:
+def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='set_param', description=__doc__.split('\n')[0])
     parser.add_argument('node', help='fully qualified node name, e.g. /sim_node')
     parser.add_argument('name', help='parameter name')

@@ -7,7 +7,10 @@ composed:=true runs the three nodes in one process (`zeus_ros.ros_tools.composed
 `bringup --composed`): the same nodes and topics, on one loop thread.
 """
 
+from __future__ import annotations
+
 import os
+from typing import TYPE_CHECKING
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
@@ -18,12 +21,16 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+if TYPE_CHECKING:
+    from launch import LaunchContext
+    from launch.events.process import ProcessExited
+
 
 class NodeFailed(RuntimeError):
     """A node of the graph exited with an error: the launch fails with it."""
 
 
-def exit_problem(name, returncode) -> str | None:
+def exit_problem(name: str, returncode: int | None) -> str | None:
     """Why the launch must fail when `name` exited with `returncode` (None: a clean stop)."""
     if returncode in (0, None):
         return None
@@ -32,7 +39,8 @@ def exit_problem(name, returncode) -> str | None:
     return f'{name} {how}; stopping the launch (its message is above)'
 
 
-def _end_launch(event, context):  # noqa: ARG001 (OnProcessExit's on_exit signature)
+# ARG001: OnProcessExit's on_exit signature.
+def _end_launch(event: ProcessExited, context: LaunchContext):  # noqa: ARG001
     # An exception raised in an event handler makes LaunchService.run return 1,
     # which `ros2 launch` returns; a clean exit just shuts the others down.
     problem = exit_problem(event.action.name, event.returncode)
@@ -42,7 +50,9 @@ def _end_launch(event, context):  # noqa: ARG001 (OnProcessExit's on_exit signat
             EmitEvent(event=Shutdown(reason=f'{event.action.name} stopped'))]
 
 
-def composed_ros_arguments(config, family, weights, mode, priority, backend='torch') -> list:
+def composed_ros_arguments(config: str, family: LaunchConfiguration, weights: LaunchConfiguration,
+                           mode: LaunchConfiguration, priority: LaunchConfiguration,
+                           backend: LaunchConfiguration | str = 'torch') -> list:
     """Return the one process's ROS arguments: the config file, then each node's values.
 
     Given by node name (-p sim_node:mode:=...), since one `parameters` dict would

@@ -39,7 +39,7 @@ def training_wall_time(run: Path) -> float | None:
     return float(rows[-1]['wall_s']) if rows else None
 
 
-def parse_args(argv=None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('run', type=Path)
     parser.add_argument('dest', type=Path)
@@ -52,7 +52,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     args.dest.mkdir(parents=True, exist_ok=True)
     for name in SHIPPED:

@@ -13,12 +13,16 @@ import argparse
 import csv
 from collections import defaultdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 SPLIT_COLOURS = {'train': 'tab:blue', 'interpolation': 'tab:green',
                  'extrapolation': 'tab:red'}
@@ -35,7 +39,7 @@ def smooth(values: np.ndarray, width: int) -> np.ndarray:
     return np.convolve(values, np.ones(width) / width, mode='valid')
 
 
-def save(fig, path: Path) -> Path:
+def save(fig: Figure, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -92,7 +96,7 @@ def final_eval(runs: list[Path], out: Path) -> Path:
     return save(fig, out / 'final_eval_per_value.png')
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('runs', nargs='+', type=Path, help='run directories')
     parser.add_argument('--out', type=Path, required=True)

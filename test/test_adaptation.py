@@ -210,3 +210,21 @@ def test_estimate_gap_feeds_the_true_parameter_where_the_estimate_sits(up_osi):
     np.testing.assert_allclose(truth.estimates, 0.3, atol=1e-6)   # decoded back to the truth
     assert np.ptp(inferred.estimates) > 0   # OSI's own estimate moves: the probe changed it
     assert not np.allclose(inferred.actions, truth.actions)
+
+
+def test_estimate_gap_gives_rma_its_teachers_latent_for_the_true_parameter(tmp_path_factory):
+    """For rma the truth is mu(true parameter), the latent its student estimates."""
+    sys.path.insert(0, str(REPO / 'research' / 'analysis'))
+    import torch
+    from estimate_gap import TeacherLatent, truth_probe
+    model = InferenceModel.load(train_tiny(tmp_path_factory, 'rma'))
+    probe = truth_probe(model, 0.3)
+    assert isinstance(probe, TeacherLatent)
+    inferred = run_episode(model, FAMILY, 0.3, seed=1, max_steps=40)
+    truth = run_episode(model, FAMILY, 0.3, seed=1, max_steps=40, probe=probe)
+    with torch.no_grad():
+        teacher = model.method.teacher(torch.tensor([[0.3]])).numpy()[0]
+    np.testing.assert_allclose(truth.latents, np.broadcast_to(teacher, truth.latents.shape),
+                               atol=1e-6)
+    assert not np.allclose(inferred.latents, truth.latents)   # psi's estimate is not mu's
+    assert not np.allclose(inferred.actions, truth.actions)

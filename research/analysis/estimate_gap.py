@@ -8,7 +8,9 @@ feed the policy the TRUE normalised parameter in those coordinates (the rest
 of the latent, if any, as inferred) and measure the return again, same
 values, same start states. If the return with the truth reaches the
 oracle's, the whole gap is the estimate's error, and a better estimator closes
-it; if not, the policy itself falls short.
+it; if not, the policy itself falls short. For `rma`, whose latent is an
+estimate of its teacher's extrinsics z = mu(parameter), the truth is the
+teacher's latent for the true parameter (the deployed weights carry mu).
 
     PYTHONPATH=. OMP_NUM_THREADS=1 python research/analysis/estimate_gap.py \
         --runs weights/cheetah-run-v1-up-osi --split interpolation
@@ -35,6 +37,7 @@ from zeus_ros.learning_tools.evaluate import EpisodeProbe, run_episode
 
 RESULTS = Path(__file__).resolve().parents[1] / 'results'
 ESTIMATE_IN_LATENT = ('up-osi', 'zeus-osi')   # methods whose latent starts with the estimate
+TEACHER_LATENT = ('rma',)                     # methods whose latent estimates a teacher's
 
 
 class TrueEstimate(EpisodeProbe):
@@ -50,6 +53,25 @@ class TrueEstimate(EpisodeProbe):
         return out
 
 
+class TeacherLatent(EpisodeProbe):
+    """Replace the whole latent by the teacher's extrinsics for the true parameter."""
+
+    def __init__(self, model: InferenceModel, value):
+        truth = torch.tensor([as_values(value)], dtype=torch.float32)
+        with torch.no_grad():
+            self.teacher = model.method.teacher(truth)[0].numpy().astype(np.float32)
+
+    def latent(self, latent):  # noqa: ARG002 (EpisodeProbe's signature: replaced whole)
+        return self.teacher.copy()
+
+
+def truth_probe(model: InferenceModel, value) -> EpisodeProbe:
+    """Return the probe that gives `model`'s policy the truth in place of its estimate."""
+    if model.method_name in TEACHER_LATENT:
+        return TeacherLatent(model, value)
+    return TrueEstimate(model, value)
+
+
 @dataclass(frozen=True)
 class ValueFigures:
     """Mean over episodes at one parameter value."""
@@ -63,7 +85,7 @@ class ValueFigures:
 def value_figures(model: InferenceModel, value, episodes: int) -> ValueFigures:
     """Run `episodes` deterministic episodes (seeds 0..) each way at one value."""
     inferred = [run_episode(model, model.family, value, seed) for seed in range(episodes)]
-    truth = [run_episode(model, model.family, value, seed, probe=TrueEstimate(model, value))
+    truth = [run_episode(model, model.family, value, seed, probe=truth_probe(model, value))
              for seed in range(episodes)]
     estimate = np.mean(np.concatenate([r.estimates[model.k:] for r in inferred]))
     return ValueFigures(float(value), float(np.mean([r.episode_return for r in inferred])),
@@ -73,9 +95,9 @@ def value_figures(model: InferenceModel, value, episodes: int) -> ValueFigures:
 def run_figures(path: Path, split: str, episodes: int) -> tuple[InferenceModel, list]:
     """Load one run's weights and measure every value of `split`."""
     model = InferenceModel.load(path)
-    if model.method_name not in ESTIMATE_IN_LATENT:
+    if model.method_name not in ESTIMATE_IN_LATENT + TEACHER_LATENT:
         raise SystemExit(f'{path}: {model.method_name} has no estimate in its latent '
-                         f'(one of {", ".join(ESTIMATE_IN_LATENT)} is needed)')
+                         f'(one of {", ".join(ESTIMATE_IN_LATENT + TEACHER_LATENT)} is needed)')
     values = get_sim_family(model.family).split(split)
     if not values:
         raise SystemExit(f'{model.family} has no {split} values')
@@ -116,7 +138,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--runs', nargs='+', type=Path, required=True,
-                   help='run or weights directories of up-osi / zeus-osi checkpoints')
+                   help='run or weights directories of up-osi / zeus-osi / rma checkpoints')
     p.add_argument('--split', default='interpolation',
                    choices=('train', 'interpolation', 'extrapolation'))
     p.add_argument('--episodes', type=int, default=2)

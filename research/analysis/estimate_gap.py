@@ -147,9 +147,10 @@ def main(argv=None) -> int:
     rows = {}
     for path in args.runs:
         model, figs = run_figures(path, args.split, args.episodes)
-        rows[path.name] = (model.method_name, figs)
+        name = path.parent.name if path.name == 'checkpoint' else path.name   # a run's folder
+        rows[name] = (model.method_name, figs)
         inferred, truth = run_means(figs)
-        print(f'{path.name}: inferred {inferred:.1f}, truth {truth:.1f}', flush=True)
+        print(f'{name}: inferred {inferred:.1f}, truth {truth:.1f}', flush=True)
     out = RESULTS / f'{args.name}.md'
     out.write_text(render(rows, args.split, args.episodes, argv))
     print(f'wrote {out}')

@@ -105,7 +105,9 @@ def _composed_launch_arguments(*values):
     func = next(n for n in tree.body if isinstance(n, ast.FunctionDef)
                 and n.name == 'composed_ros_arguments')
     namespace = {}
-    exec(compile(ast.Module(body=[func], type_ignores=[]), 'zeus.launch.py', 'exec'),
+    # The file's own future import: its annotations name launch types, never evaluated.
+    future = ast.parse('from __future__ import annotations').body
+    exec(compile(ast.Module(body=[*future, func], type_ignores=[]), 'zeus.launch.py', 'exec'),
          namespace)
     # launch joins a list of substitutions into one argument; here they are strings.
     return [''.join(a) if isinstance(a, list) else a

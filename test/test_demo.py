@@ -202,7 +202,25 @@ def test_the_docs_friction_walker_figures_are_what_the_demo_prints(tmp_path):
                       '--video-every', 0)
     assert result.returncode == 0, result.stdout + result.stderr
     total = next(line for line in result.stdout.splitlines() if line.strip().startswith('total'))
-    assert total.split()[-2:] == [adaptive_total, reference_total], result.stdout
+    assert_same_figures(total.split()[-2:], [adaptive_total, reference_total], result.stdout)
+
+
+# How far a documented return may sit from the one printed on another CPU. A run is
+# deterministic on one machine, but torch's MKL picks its kernels by CPU (AVX2,
+# AVX-512, AMX), and an episode amplifies a last-bit difference: the README's
+# reacher demo printed 648.0 on one machine and 650.7 on a Sapphire Rapids one
+# (644.1 to 650.7 here under MKL_CBWR's code paths), the walker's reference 898.0
+# and 888.9. A stale figure (other weights, another schedule) misses by far more.
+FIGURE_TOLERANCE = 0.03
+
+
+def assert_same_figures(printed: list[str], documented: list[str], output: str) -> None:
+    """Assert printed returns (adaptive, reference) are the documented ones to a CPU's rounding."""
+    got, want = [float(x) for x in printed], [float(x) for x in documented]
+    for value, expected in zip(got, want, strict=True):
+        assert abs(value - expected) <= FIGURE_TOLERANCE * abs(expected), (printed, documented,
+                                                                            output)
+    assert (got[0] > got[1]) == (want[0] > want[1]), output   # the claim the figures make
 
 
 def makefile_default(name: str) -> str:
@@ -223,5 +241,13 @@ def test_the_readme_figures_are_what_make_demo_prints(tmp_path):
                       '--video-every', 0)
     assert result.returncode == 0, result.stdout + result.stderr
     printed = next(line for line in result.stdout.splitlines() if line.strip().startswith('total'))
-    assert printed.split()[-2:] == total.split()[-2:], result.stdout
+    assert_same_figures(printed.split()[-2:], total.split()[-2:], result.stdout)
     assert 'reacher-length' in weights     # the default swaps a link length, not a reward target
+
+
+def test_the_figure_check_takes_a_cpus_rounding_and_not_a_stale_figure():
+    assert_same_figures(['650.7', '322.2'], ['648.0', '322.2'], '')   # two CPUs, one demo
+    with pytest.raises(AssertionError):
+        assert_same_figures(['574.0', '322.2'], ['648.0', '322.2'], '')   # other weights
+    with pytest.raises(AssertionError):
+        assert_same_figures(['300.0', '310.0'], ['305.0', '300.0'], '')   # the claim flips

@@ -135,19 +135,22 @@ def _verdict(apart: bool, gap: float, sac_mean: float) -> str:
     return 'yes' if relative and absolute else ('15 % only' if relative else '100 only')
 
 
-def gap_rows(prefix: str, groups: dict[str, list[RunFigures]]) -> list[str]:
+def gap_rows(prefix: str, groups: dict[str, list[RunFigures]],
+             references: tuple[str, str] = ('oracle', 'sac')) -> list[str]:
     """One row per split: oracle against sac, and the share of that gap each method closes.
 
     Issue #36's test of a family: the oracle ahead of sac by at least 15 % of
     sac's return (or 100 points), with standard errors that do not overlap.
     The verdict says which threshold the gap meets: 'yes' both, '15 % only'
     or '100 only' one of them (the issue's "or" reads either way), 'no' none.
+    `references`: the run groups (after the prefix) that stand for the oracle
+    and sac, e.g. ('oracle-swap', 'sac-swap') for references trained with swaps.
     """
-    oracle, sac = groups.get(f'{prefix}-oracle'), groups.get(f'{prefix}-sac')
+    names = tuple(f'{prefix}-{reference}' for reference in references)
+    oracle, sac = (groups.get(name) for name in names)
     if not oracle or not sac:
         return []
-    others = sorted(n for n in groups if n.startswith(prefix + '-')
-                    and n not in (f'{prefix}-oracle', f'{prefix}-sac'))
+    others = sorted(n for n in groups if n.startswith(prefix + '-') and n not in names)
     rows = []
     for split in SPLITS:
         o, s = _split_returns(oracle, split), _split_returns(sac, split)
@@ -169,18 +172,19 @@ def gap_rows(prefix: str, groups: dict[str, list[RunFigures]]) -> list[str]:
     return rows
 
 
-def gaps_table(results: Path) -> str:
+def gaps_table(results: Path, references: tuple[str, str] = ('oracle', 'sac')) -> str:
     """Markdown table: per family prefix and split, oracle vs sac and the gap methods close."""
     groups: dict[str, list[RunFigures]] = defaultdict(list)
     for folder in sorted(p for p in results.iterdir() if p.is_dir()):
         if SEED_SUFFIX.search(folder.name) and (folder / 'adaptation.json').exists():
             groups[SEED_SUFFIX.sub('', folder.name)].append(read_run(folder))
-    prefixes = sorted({n.rsplit('-oracle', 1)[0] for n in groups if n.endswith('-oracle')})
-    lines = ['| family runs | split | oracle (seeds) | sac (seeds) | oracle - sac | '
+    oracle, sac = references
+    prefixes = sorted({n.removesuffix(f'-{oracle}') for n in groups if n.endswith(f'-{oracle}')})
+    lines = [f'| family runs | split | {oracle} (seeds) | {sac} (seeds) | {oracle} - {sac} | '
              '#36 test (>= 15 % or 100, SEs apart) | share of the gap closed |',
              '|---|---|---|---|---|---|---|']
     for prefix in prefixes:
-        lines += gap_rows(prefix, groups)
+        lines += gap_rows(prefix, groups, references)
     return '\n'.join(lines)
 
 
@@ -202,8 +206,13 @@ def main(argv=None) -> int:
                         help='also draw the learning curves of every run group into PNG')
     parser.add_argument('--gaps', action='store_true',
                         help='print the oracle-against-sac table per family prefix instead')
+    parser.add_argument('--references', nargs=2, default=('oracle', 'sac'),
+                        metavar=('ORACLE', 'SAC'),
+                        help='with --gaps: the run groups that stand for the oracle and sac '
+                             '(e.g. oracle-swap sac-swap: both trained with swaps)')
     args = parser.parse_args(argv)
-    print(gaps_table(args.results) if args.gaps else table(args.results))
+    print(gaps_table(args.results, tuple(args.references)) if args.gaps
+          else table(args.results))
     if args.curves:
         print(f'curves: {plot(args.results, args.curves)}')
     return 0

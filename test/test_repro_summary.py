@@ -160,6 +160,19 @@ def test_gaps_table_tests_the_oracle_against_sac_and_the_share_each_method_close
     assert rows == ['| rl | train | 710 +- 6 (3) | 300 +- 12 (3) | +410 (+137 %) | yes | '
                     'rma 83 % |']
     assert '| cp | train | 500 (1) | 450 (1) | +50 (+11 %) | - | - |' in out
+    # References trained another way (swaps): the same table against those groups.
+    for seed, (oracle, sac) in enumerate([(900, 400), (920, 420), (910, 380)], start=1):
+        _report(tmp_path / f'rl-oracle-swap-s{seed}', oracle, oracle + 10, 1.0)
+        _report(tmp_path / f'rl-sac-swap-s{seed}', sac, sac + 10, None)
+    out = subprocess.run([sys.executable, str(SUMMARIZE), str(tmp_path), '--gaps',
+                          '--references', 'oracle-swap', 'sac-swap'], check=True,
+                         capture_output=True, text=True,
+                         env=os.environ | {'PYTHONPATH': str(REPO)}).stdout
+    rows = [line for line in out.splitlines() if line.startswith('| rl | train')]
+    # 910 against 400: +510; rma 640 closes (640 - 400) / 510 = 47 %; the old pair are methods now
+    assert rows == ['| rl | train | 910 +- 6 (3) | 400 +- 12 (3) | +510 (+128 %) | yes | '
+                    'oracle 61 %, rma 47 %, sac -20 % |'], out
+    assert '| cp |' not in out   # no oracle-swap there
 
 
 def test_gaps_verdict_names_the_threshold_a_gap_meets():

@@ -190,13 +190,17 @@ def test_demo_and_bringup_refuse_missing_weights_in_one_line(tmp_path):
         assert 'Traceback' not in result.stderr
 
 
-def test_the_docs_friction_walker_figures_are_what_the_demo_prints(tmp_path):
+DOCS_DEMO = re.compile(r'DEMO_WEIGHTS=(\S+)\s+DEMO_REFERENCE=(\S+)\s+DEMO_SCHEDULE=(\S+)\s+'
+                       r'DEMO_SEED=(\d+)`\) returns (\S+) against (\S+)')
+
+
+@pytest.mark.parametrize('name', ['walker-walk-slippery', 'cheetah-run-wide-friction'])
+def test_the_docs_friction_demo_figures_are_what_the_demo_prints(tmp_path, name):
     """#38.3: a figure in the docs is checked against the command the docs give for it."""
     text = (REPO / 'docs' / 'pages' / 'index.md').read_text()
-    command = re.search(r'DEMO_WEIGHTS=(\S+)\s+DEMO_REFERENCE=(\S+)\s+DEMO_SCHEDULE=(\S+)\s+'
-                        r'DEMO_SEED=(\d+)`\) returns (\S+) against (\S+)', text)
-    assert command, 'the friction walker paragraph changed: update this test'
-    weights, reference, schedule, seed, adaptive_total, reference_total = command.groups()
+    commands = [m for m in DOCS_DEMO.finditer(text) if f'weights/{name}-' in m.group(1)]
+    assert len(commands) == 1, f'the {name} demo paragraph changed: update this test'
+    weights, reference, schedule, seed, adaptive_total, reference_total = commands[0].groups()
     result = run_demo('--weights', weights, '--reference-weights', reference,
                       '--schedule', schedule, '--seed', seed, '--out', tmp_path / 'out',
                       '--video-every', 0)

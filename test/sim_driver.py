@@ -144,15 +144,38 @@ def wait_loop_running(ros_node, steps, timeout=60.0):
 
 
 def episode_rewards(ros_node, driver, steps, seed: int, friction: float | None = None,
-                    params: dict | None = None, length: int = 1000) -> np.ndarray:
+                    params: dict | None = None, length: int = 1000,
+                    attempts: int = 3) -> np.ndarray:
     """Rewards of one full episode from a reset, once the loop runs (`steps`: collected).
 
     The reset sets `params` (default: the walker's friction). Index i holds
     step i + 1's reward, NaN where this observer missed the StepInfo: the loop
     runs lockstep at hundreds of steps per second, and a loaded test process
     that falls more than the writer's keep-last 10 behind loses states (the
-    loop's own nodes do not; see README, QoS). `assert_same_rewards` compares.
+    loop's own nodes do not; see README, QoS). The episode is deterministic, so
+    while this observer has seen less than `assert_same_rewards` asks for, it is
+    run again from the same reset (up to `attempts` times) and the views merged;
+    where two runs were both seen they must agree bit for bit.
     """
+    rewards = np.full(length, np.nan)
+    for _ in range(attempts):
+        again = _one_episode_rewards(ros_node, driver, steps, seed, friction, params, length)
+        both = ~np.isnan(rewards) & ~np.isnan(again)
+        np.testing.assert_array_equal(rewards[both], again[both],
+                                      err_msg='one reset, two different episodes')
+        rewards = np.where(np.isnan(rewards), again, rewards)
+        if _seen_enough(rewards):
+            break
+    return rewards
+
+
+def _seen_enough(observed: np.ndarray) -> bool:
+    seen = ~np.isnan(observed)
+    return bool(seen[-1]) and seen.mean() >= 0.95
+
+
+def _one_episode_rewards(ros_node, driver, steps, seed: int, friction: float | None,
+                         params: dict | None, length: int) -> np.ndarray:
     wait_loop_running(ros_node, steps)
     # The episode number comes from the reset's answer: its first state may be
     # pushed out of the driver's queue by the loop's hundreds of steps per second
@@ -183,7 +206,7 @@ def assert_same_rewards(observed: np.ndarray, expected) -> None:
     expected = np.asarray(expected)
     seen = ~np.isnan(observed)
     assert len(observed) == len(expected), (len(observed), len(expected))
-    assert seen[-1] and seen.mean() >= 0.95, f'observed {seen.sum()} of {len(seen)} steps'
+    assert _seen_enough(observed), f'observed {seen.sum()} of {len(seen)} steps'
     np.testing.assert_array_equal(observed[seen], expected[seen])
 
 

@@ -9,7 +9,10 @@
 set -uo pipefail
 runs="$1"; minutes="$2"; out="$3"; stop="${4:-}"
 cd "$(dirname "$0")/../.."
+# colcon's setup scripts read unset variables (COLCON_TRACE): source them without -u.
+set +u
 source scripts/ros_env.sh && source "$ZEUS_VENV/bin/activate" && source install/setup.bash
+set -u
 mkdir -p "$out"
 for i in $(seq 1 "$runs"); do
   # Outside 20-99, the pool the tests and demos claim theirs from; the soak

@@ -7,9 +7,13 @@ it does not require the goals to be met (they are the soak's verdict, not a
 timed test's).
 """
 
+import importlib.util
 import json
+from pathlib import Path
+import signal
 import subprocess
 import sys
+import time
 
 from conftest import REPO
 import pytest
@@ -129,3 +133,72 @@ def test_soak_fails_when_states_flow_but_nothing_controls_them(tmp_path):
     assert not swaps['met'] and result['swaps']['unanswered'] >= 1, result['swaps']
     assert result['per_minute'][0]['unanswered_swaps'] == result['swaps']['unanswered']
     assert 'goal FAIL: no uncontrolled spell' in proc.stdout
+
+
+def load_soak_module():
+    spec = importlib.util.spec_from_file_location(
+        'soak_under_test', REPO / 'research' / 'benchmarks' / 'soak.py')
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module   # dataclasses look their module up by name
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_restarted_sims_wait_for_its_first_command_is_the_restarts_not_a_stall():
+    """A restarted sim's wait for the policy to discover it is judged as the restart's.
+
+    Soak run 1 of the #39 series: the new sim's step 0 -> 1 took 1.31 s, 1.33 s
+    after its start-up line: the control-back goal's, not a stall. The same gap
+    in steady running is still a stall.
+    """
+    soak = load_soak_module()
+    cfg = soak.SoakConfig(weights=Path('unused'), minutes=10)
+    restart = soak.RestartResult(
+        node='sim_node', cause='soak', old_pid=1, new_pid=2, killed_at_s=150.0,
+        spawned_at_s=152.0, startup_line_at_s=153.18, first_step_at_s=153.19,
+        control_back_at_s=154.5, control_back_after_spawn_s=2.5,
+        control_back_after_startup_s=1.32, upper_bound=False)
+    windows = soak.recovery_windows(cfg, [restart])
+    t0 = 1000.0
+    gaps = [soak.Gap(t0 + 153.2, 1.31, (0, 0), (0, 1)),       # inside the recovery window
+            soak.Gap(t0 + 400.0, 1.31, (70, 10), (70, 11)),   # steady running
+            soak.Gap(t0 + 154.9, 1.31, (0, 60), (0, 61))]     # starts in it, ends 1.03 s after
+    found = soak.stalls(gaps, t0, [t0 + 150.0], windows)
+    assert [s.outside_restarts_s for s in found] == [0.0, 1.31, 1.03]
+    stall_goal = soak.goals(cfg, [], [restart], [], found)[-1]
+    assert not stall_goal.met and '2 stall(s), worst 1.31 s' in stall_goal.detail
+    assert soak.goals(cfg, [], [restart], [], found[:1])[-1].met
+
+
+def children(pid: int) -> set[int]:
+    found = subprocess.run(['pgrep', '-P', str(pid)], capture_output=True, text=True)
+    return {int(p) for p in found.stdout.split()}
+
+
+def alive(pid: int) -> bool:
+    try:
+        stat = Path(f'/proc/{pid}/stat').read_text()
+    except FileNotFoundError:
+        return False
+    return stat.rsplit(')', 1)[1].split()[0] != 'Z'   # a zombie has ended
+
+
+def test_a_stop_signal_ends_the_soak_and_its_nodes(tmp_path):
+    """SIGTERM ends the soak and stops its three nodes.
+
+    It once left them all running: rclpy's handler only shut its context down.
+    """
+    soak = REPO / 'research' / 'benchmarks' / 'soak.py'
+    proc = subprocess.Popen([sys.executable, str(soak), '--minutes', '2', '--json',
+                             str(tmp_path / 'soak.json'), '--log-dir', str(tmp_path / 'logs')],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 120.0
+    while len(children(proc.pid)) < 3 and time.monotonic() < deadline:
+        time.sleep(0.5)
+    nodes = children(proc.pid)
+    assert len(nodes) == 3, proc.poll()
+    proc.send_signal(signal.SIGTERM)
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130, output
+    assert 'interrupted (signal 15)' in output
+    assert not [pid for pid in nodes if alive(pid)]

@@ -14,6 +14,7 @@ from typing import Any, Callable, Sequence, TYPE_CHECKING
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
 import rclpy
+import rclpy.logging
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -21,6 +22,7 @@ from rclpy.logging import get_logger_level, LoggingSeverity, set_logger_level
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
+from zeus_ros.ros.discovery import use_discovery_profile
 from zeus_ros.ros.protocol import ns_to_stamp, stamp_to_ns
 from zeus_ros.ros.loop_spin import EXECUTORS, spin_loop
 from zeus_ros.ros.parent_watch import end_with_launcher
@@ -426,6 +428,7 @@ def _init_rclpy(args: list[str] | None) -> str | None:
     # rcl also logs 'Failed to parse global arguments' for a bad one: hushed for
     # the init, so that the refusal is one line (unless --log-level set rcl's).
     set_logger_level('rcl', LoggingSeverity.FATAL)
+    profile = use_discovery_profile()   # before the participant exists: Fast DDS reads it then
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except _rclpy.UnknownROSArgsError as error:
@@ -435,6 +438,8 @@ def _init_rclpy(args: list[str] | None) -> str | None:
     finally:
         if get_logger_level('rcl') == LoggingSeverity.FATAL:
             set_logger_level('rcl', LoggingSeverity.UNSET)
+    told = profile if profile is not None else "not zeus_ros's (yours, or none)"
+    rclpy.logging.get_logger('zeus_ros.discovery').debug(f'Fast DDS participant profile: {told}')
     return None
 
 

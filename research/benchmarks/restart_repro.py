@@ -1,10 +1,10 @@
-"""Reproduce issue 39.2: kill -9 and restart the sim N times against a running context/policy pair.
+"""Reproduce issue 39.2: kill -9 and restart a node N times against the rest of a running loop.
 
-    python research/benchmarks/restart_repro.py --restarts 20 [--transports DEFAULT] \
-        [--json out.json]
+    python research/benchmarks/restart_repro.py --restarts 20 [--node policy_node] \
+        [--transports DEFAULT] [--json out.json]
 
 Starts the lockstep loop as the soak does (research/benchmarks/soak.py's Supervisor and
-Observer), then N times: SIGKILL sim_node, keep it down --down-seconds,
+Observer), then N times: SIGKILL the --node (default sim_node), keep it down --down-seconds,
 restart it, and measure the time from its start-up line (its first log line)
 to the first controlled step (a StepInfo with a non-zero applied action) and
 whether a parameter request is answered. A restart with no control within
@@ -80,10 +80,10 @@ def dump_stuck(sup: Supervisor, log_dir: Path, index: int) -> None:
 
 
 def trial(index: int, sup: Supervisor, observer: Observer, node, args, spec) -> Trial:
-    sup.kill9('sim_node')
+    sup.kill9(args.node)
     time.sleep(args.down_seconds)
     before = len(shm_files())
-    new = sup.spawn('sim_node')
+    new = sup.spawn(args.node)
     watch = observer.watch(new.spawned_at)
     wait_until(lambda: watch.control_at is not None, args.stuck_after, poll_s=0.05)
     startup = startup_line_monotonic(new.log_path)
@@ -112,6 +112,8 @@ def parse(argv=None):
     parser.add_argument('--weights', type=Path,
                         default=REPO / 'weights' / 'walker-walk-slippery-zeus')
     parser.add_argument('--restarts', type=int, default=20)
+    parser.add_argument('--node', choices=NODE_NAMES, default='sim_node',
+                        help='the node killed and restarted each time')
     parser.add_argument('--down-seconds', type=float, default=1.0)
     parser.add_argument('--stuck-after', type=float, default=60.0)
     parser.add_argument('--goal', type=float, default=2.0, help='seconds after the start-up line')
@@ -153,7 +155,9 @@ def main(argv=None) -> int:
         sup.stop()
         rclpy.try_shutdown()
         observer.spinner.join(timeout=5.0)
-    result = {'transports': args.transports or os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
+    result = {'node': args.node,
+              'transports': args.transports or os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
+              'profile': os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'),
               'load_avg': os.getloadavg()[0], 'log_dir': str(args.log_dir),
               'summary': summary(trials, args.goal), 'trials': [asdict(t) for t in trials]}
     print(json.dumps(result['summary']))

@@ -202,3 +202,28 @@ def test_a_stop_signal_ends_the_soak_and_its_nodes(tmp_path):
     assert proc.returncode == 130, output
     assert 'interrupted (signal 15)' in output
     assert not [pid for pid in nodes if alive(pid)]
+
+
+def test_the_series_summary_counts_passes_in_a_row_and_skips_unfinished_runs(tmp_path):
+    spec = importlib.util.spec_from_file_location(
+        'soak_summary_under_test', REPO / 'research' / 'benchmarks' / 'soak_summary.py')
+    summary = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = summary
+    spec.loader.exec_module(summary)
+    outcomes = [True, False, True, True, None, True, False]
+    for index, passed in enumerate(outcomes, start=1):
+        (tmp_path / f'run_{index}.txt').write_text(
+            f'run {index} of 7\nload before: 2.0 1.5 1.0\ntrainings beside it: 2\n')
+        if passed is None:
+            continue   # stopped: no figures
+        restarts = [{'node': 'policy_node', 'cause': 'soak',
+                     'control_back_after_startup_s': 1.4 if passed else 2.6}]
+        goals = [{'name': 'control back', 'met': passed}]
+        (tmp_path / f'run_{index}.json').write_text(json.dumps({
+            'passed': passed, 'restarts': restarts, 'goals': goals, 'steps_total': 1000,
+            'duration_s': 10.0, 'uncontrolled_steps': 0,
+            'swaps': {'accepted': 5, 'requested': 5, 'unanswered': 0}}))
+    runs = [summary.read_run(tmp_path, i) for i in range(1, 8)]
+    assert [r.passed for r in runs] == outcomes and runs[0].trainings == 2
+    assert summary.passes_in_a_row(runs) == 3   # runs 3, 4 and 6 (5 did not finish)
+    assert runs[1].failed == ('control back',) and runs[2].steps_per_s == 100.0

@@ -41,6 +41,7 @@ from soak import (check_domain_free, NODE_NAMES, Observer, REPO,  # noqa: E402
                   startup_line_monotonic, Supervisor)
 from zeus_ros.ros_tools.bringup import node_commands, parse_args as bringup_args  # noqa: E402
 from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
+from zeus_ros.ros.discovery import use_discovery_profile  # noqa: E402
 from zeus_ros.ros.loop_spin import wait_until  # noqa: E402
 from zeus_ros.ros.util import call_service  # noqa: E402
 
@@ -135,6 +136,7 @@ def main(argv=None) -> int:
     spec = get_family(load_metadata(args.weights).family)
     commands = node_commands(bringup_args(['--weights', str(args.weights),
                                            '--mode', 'lockstep']))
+    use_discovery_profile()   # the observer announces itself as often as the nodes do
     rclpy.init()
     node = rclpy.create_node('zeus_restart_repro')
     observer = Observer(node, 1.0, spec.name)

@@ -59,6 +59,7 @@ from zeus_msgs.msg import StepInfo  # noqa: E402
 from zeus_ros.ros_tools.bringup import node_commands, NODES, parse_args as bringup_args  # noqa: E402
 from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
 from zeus_ros.deploy.metadata import CheckpointMetadata  # noqa: E402
+from zeus_ros.ros.discovery import use_discovery_profile  # noqa: E402
 from zeus_ros.ros.loop_spin import (create_loop_subscription, spin_in_background,  # noqa: E402
                                 wait_until)
 from zeus_ros.ros.util import call_service, LOOP_QOS, stamp_ns  # noqa: E402
@@ -1022,6 +1023,9 @@ def run_soak(cfg: SoakConfig) -> SoakResult:
     load_start = os.getloadavg()[0]
     # rclpy's own handlers would only shut its context down and leave the soak
     # (and its nodes) running: a stop signal ends the run through `finally`.
+    # The observer announces itself as often as the nodes do (their profile): with
+    # Fast DDS's 3-s default it would see a restarted sim's steps up to 3 s late.
+    use_discovery_profile()
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, _interrupt)

@@ -135,9 +135,10 @@ def test_soak_fails_when_states_flow_but_nothing_controls_them(tmp_path):
     assert 'goal FAIL: no uncontrolled spell' in proc.stdout
 
 
-def load_soak_module():
+def load_benchmark(name: str):
+    """Import research/benchmarks/<name>.py (not a package) under a name of its own."""
     spec = importlib.util.spec_from_file_location(
-        'soak_under_test', REPO / 'research' / 'benchmarks' / 'soak.py')
+        f'{name}_under_test', REPO / 'research' / 'benchmarks' / f'{name}.py')
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module   # dataclasses look their module up by name
     spec.loader.exec_module(module)
@@ -151,7 +152,7 @@ def test_a_restarted_sims_wait_for_its_first_command_is_the_restarts_not_a_stall
     after its start-up line: the control-back goal's, not a stall. The same gap
     in steady running is still a stall.
     """
-    soak = load_soak_module()
+    soak = load_benchmark('soak')
     cfg = soak.SoakConfig(weights=Path('unused'), minutes=10)
     restart = soak.RestartResult(
         node='sim_node', cause='soak', old_pid=1, new_pid=2, killed_at_s=150.0,
@@ -205,11 +206,7 @@ def test_a_stop_signal_ends_the_soak_and_its_nodes(tmp_path):
 
 
 def test_the_series_summary_counts_passes_in_a_row_and_skips_unfinished_runs(tmp_path):
-    spec = importlib.util.spec_from_file_location(
-        'soak_summary_under_test', REPO / 'research' / 'benchmarks' / 'soak_summary.py')
-    summary = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = summary
-    spec.loader.exec_module(summary)
+    summary = load_benchmark('soak_summary')
     outcomes = [True, False, True, True, None, True, False]
     for index, passed in enumerate(outcomes, start=1):
         (tmp_path / f'run_{index}.txt').write_text(

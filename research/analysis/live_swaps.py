@@ -57,11 +57,13 @@ def parse_schedule(text: str) -> dict[int, float]:
 
 
 def run_label(model: InferenceModel) -> str:
-    """Name a run by its method, its window and whether it trained with swaps in episodes."""
+    """Name a run by its method, window, recipe and whether it trained with swaps."""
     swaps = ', swaps in training' if model.meta.config.get('train_swap_prob', 0.0) else ''
     if model.method_name in ('sac', 'oracle'):   # no window: the context is none or the truth
         return model.method_name + (f' ({swaps[2:]})' if swaps else '')
-    return f'{model.method_name} (k={model.k}{swaps})'
+    # rma's raw-parameter ablation is another recipe, not another seed of the same one.
+    raw = ', raw extrinsics' if model.meta.config.get('rma_latent') is False else ''
+    return f'{model.method_name} (k={model.k}{swaps}{raw})'
 
 
 def run_figures(path: Path, schedule: dict[int, float], episodes: int, seed: int,

@@ -43,6 +43,7 @@ class RunFigures:
     segments: tuple[float, ...]
     total: float
     episodes: tuple[float, ...]   # each episode's return, by episode seed
+    decoded: tuple[float, ...]    # mean decoded parameter per segment (NaN: no decoder)
 
 
 def parse_schedule(text: str) -> dict[int, float]:
@@ -74,30 +75,39 @@ def run_figures(path: Path, schedule: dict[int, float], episodes: int, seed: int
     # step, which run_episode indexes s - 1 (the demo's segments are 332, 333, 335
     # steps long). So the figures here are the demo's, to the bit.
     bounds = [0, *(s - 1 for s in schedule if s), steps]
-    per_episode = []
+    per_episode, decoded = [], []
     for e in range(episodes):
         rec = run_episode(model, model.family, schedule[0], seed + e,
                           swap_schedule={s - 1: v for s, v in schedule.items() if s},
                           max_steps=steps)
         rewards = np.asarray(rec.rewards, dtype=float)
         per_episode.append([rewards[a:b].sum() for a, b in pairwise(bounds)])
+        # The demo's "decoded (mean)" column: does the estimate follow each swap?
+        estimates = np.asarray(rec.estimates, dtype=float).reshape(len(rewards), -1)[:, 0]
+        decoded.append([estimates[a:b].mean() for a, b in pairwise(bounds)])
     segments = np.mean(per_episode, axis=0)
     return RunFigures(str(path), run_label(model), tuple(float(s) for s in segments),
-                      float(segments.sum()), tuple(float(sum(e)) for e in per_episode))
+                      float(segments.sum()), tuple(float(sum(e)) for e in per_episode),
+                      tuple(float(d) for d in np.mean(decoded, axis=0)))
 
 
 def table(figures: list[RunFigures], schedule: dict[int, float]) -> str:
     """Markdown: one row per method, mean +- SE over its runs per segment."""
     heads = [f'from step {s} at {v:g}' for s, v in schedule.items()]
-    lines = ['| method | runs | ' + ' | '.join(heads) + ' | episode |',
-             '|---|---|' + '---|' * len(heads) + '---|']
+    decoded_heads = [f'decoded at {v:g}' for v in schedule.values()]
+    lines = ['| method | runs | ' + ' | '.join(heads) + ' | episode | '
+             + ' | '.join(decoded_heads) + ' |',
+             '|---|---|' + '---|' * (2 * len(heads) + 1)]
     groups: dict[str, list[RunFigures]] = defaultdict(list)
     for f in figures:
         groups[f.method].append(f)
     for method, runs in sorted(groups.items()):
         cells = [mean_se([r.segments[i] for r in runs], 0) for i in range(len(heads))]
+        decoded = [mean_se([r.decoded[i] for r in runs if not np.isnan(r.decoded[i])], 2)
+                   for i in range(len(heads))]
         lines.append(f'| {method} | {len(runs)} | ' + ' | '.join(cells)
-                     + f' | {mean_se([r.total for r in runs], 0)} |')
+                     + f' | {mean_se([r.total for r in runs], 0)} | ' + ' | '.join(decoded)
+                     + ' |')
     return '\n'.join(lines)
 
 
@@ -120,14 +130,15 @@ def main(argv=None) -> int:
     for path in args.runs:
         figures.append(run_figures(path, schedule, args.episodes, args.seed, args.steps))
         print(f'{path}: {figures[-1].method} segments '
-              f'{[round(s, 1) for s in figures[-1].segments]} total {figures[-1].total:.1f}',
-              flush=True)
+              f'{[round(s, 1) for s in figures[-1].segments]} total {figures[-1].total:.1f} '
+              f'decoded {[round(d, 3) for d in figures[-1].decoded]}', flush=True)
     text = table(figures, schedule)
     print(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         runs = '\n'.join(f'- `{f.run}` ({f.method}): {f.total:.1f}; by episode seed from '
-                         f'{args.seed}: {", ".join(f"{e:.0f}" for e in f.episodes)}'
+                         f'{args.seed}: {", ".join(f"{e:.0f}" for e in f.episodes)}; decoded '
+                         f'per segment {", ".join(f"{d:.3g}" for d in f.decoded)}'
                          for f in figures)
         command = 'PYTHONPATH=. OMP_NUM_THREADS=1 python ' + ' '.join(
             ['research/analysis/live_swaps.py', *map(str, sys.argv[1:])] if argv is None

@@ -59,7 +59,7 @@ bench: setup
 	$(IN_WS) python $(BENCH)/bench_inference.py --weights weights/walker-walk-v0-zeus \
 	  weights/cheetah-run-v1-zeus-id weights/cheetah-run-v1-sac --json $(BENCH)/results_inference.json
 	$(IN_WS) python $(BENCH)/bench_loop.py --weights weights/walker-walk-v0-zeus --composed \
-	  --transports SHM \
+	  --profiles shm=$(BENCH)/fastdds_shared_memory.xml \
 	  --realtime-weights weights/cheetah-run-v0-zeus --realtime-seconds $(REALTIME_SECONDS) \
 	  --compare-normal-scheduler --json $(BENCH)/results_loop.json
 	$(IN_WS) python $(BENCH)/bench_trainer.py --profile cpu --threads 2 1

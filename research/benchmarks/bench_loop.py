@@ -8,8 +8,10 @@ Measures, with the same checkpoint:
 2. lockstep through the three ROS processes: control steps/s, the median (and
    range) over --episodes episodes, and the ratio of the median to (1); then
    the same with the three nodes composed in one process (`bringup --composed`,
-   figures prefixed composed_), and under each --transports value
-   (FASTDDS_BUILTIN_TRANSPORTS) and --executors value (the nodes' background
+   figures prefixed composed_), and under each --profiles NAME=FILE (the nodes'
+   Fast DDS participant profile: e.g. shared memory against UDPv4, which
+   FASTDDS_BUILTIN_TRANSPORTS cannot choose under ROS_AUTOMATIC_DISCOVERY_RANGE=
+   LOCALHOST) and --executors value (the nodes' background
    executor: events), so the modes come from one run; each with
    the CPU ms per step of every process of the graph and of the observer;
 3. step latency, state published -> its command, p50 / p99 / max (seen from an
@@ -51,6 +53,7 @@ from zeus_msgs.msg import StepInfo  # noqa: E402
 from zeus_msgs.srv import Reset  # noqa: E402
 from zeus_ros.ros_tools.bringup import Bringup, node_commands, parse_args as bringup_args  # noqa: E402
 from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
+from zeus_ros.ros.discovery import PROFILE_ENV  # noqa: E402
 from zeus_ros.deploy.metadata import CheckpointMetadata  # noqa: E402
 from zeus_ros.deploy.inference import InferenceModel  # noqa: E402
 from zeus_ros.learning_tools.evaluate import model_env, run_episode  # noqa: E402
@@ -294,10 +297,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--composed', action='store_true',
                         help='measure lockstep a second time with the three nodes composed '
                              'in one process (figures prefixed composed_)')
-    parser.add_argument('--transports', nargs='*', default=[], metavar='NAME',
-                        help='measure three-process lockstep again under each '
-                             'FASTDDS_BUILTIN_TRANSPORTS value (SHM, UDPv4...; figures '
-                             'prefixed with it)')
+    parser.add_argument('--profiles', nargs='*', default=[], metavar='NAME=FILE',
+                        type=profile_arg,
+                        help='measure three-process lockstep again with the nodes on each '
+                             'Fast DDS profile (FASTRTPS_DEFAULT_PROFILES_FILE; figures '
+                             'prefixed NAME_). This process keeps the first profile it '
+                             'loaded (Fast DDS reads it once per process)')
     parser.add_argument('--executors', nargs='*', default=[], choices=('events',),
                         help="measure three-process lockstep again with the nodes' "
                              'services and timers on each other executor (figures '
@@ -308,17 +313,25 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def profile_arg(text: str) -> tuple[str, Path]:
+    """`udp=config/x.xml` -> ('udp', Path); the file must exist."""
+    name, _, path = text.partition('=')
+    if not name or not Path(path).is_file():
+        raise argparse.ArgumentTypeError(f'{text!r}: want NAME=FILE, an existing file')
+    return name, Path(path).resolve()
+
+
 class LockstepRun(NamedTuple):
     prefix: str                # of its figures
     composed: bool
-    transports: str | None     # FASTDDS_BUILTIN_TRANSPORTS, None: as set
+    profile: Path | None       # the nodes' Fast DDS profile, None: as set
     executor: str = 'single'   # the nodes' `executor` parameter
 
 
 def lockstep_runs(args) -> list[LockstepRun]:
-    """Each lockstep run: the plain one, composed, per transport, per executor."""
+    """Each lockstep run: the plain one, composed, per profile, per executor."""
     runs = [LockstepRun('', False, None)] + [LockstepRun('composed_', True, None)] * args.composed
-    runs += [LockstepRun(f'{name.lower()}_', False, name) for name in args.transports]
+    runs += [LockstepRun(f'{name}_', False, path) for name, path in args.profiles]
     return runs + [LockstepRun(f'{name}_executor_', False, None, name)
                    for name in args.executors]
 
@@ -329,17 +342,17 @@ def lockstep_part(args, meta: CheckpointMetadata, figures: dict) -> None:
         return lockstep_figures(observer, node.create_client(Reset, '/sim_node/reset'),
                                 node.create_client(SetParameters, '/sim_node/set_parameters'),
                                 meta.param_name, args.swaps, args.episodes)
-    for prefix, composed, transports, executor in lockstep_runs(args):
-        saved = os.environ.get('FASTDDS_BUILTIN_TRANSPORTS')
-        if transports is not None:   # the node processes and this observer alike
-            os.environ['FASTDDS_BUILTIN_TRANSPORTS'] = transports
+    for prefix, composed, profile, executor in lockstep_runs(args):
+        saved = os.environ.get(PROFILE_ENV)
+        if profile is not None:   # the node processes inherit it
+            os.environ[PROFILE_ENV] = str(profile)
         try:
             found = run_graph(args.weights, 'lockstep', lockstep, composed=composed,
                               executor=executor)
         finally:
-            os.environ.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
+            os.environ.pop(PROFILE_ENV, None)
             if saved is not None:
-                os.environ['FASTDDS_BUILTIN_TRANSPORTS'] = saved
+                os.environ[PROFILE_ENV] = saved
         found['lockstep_ratio_to_inprocess'] = (found['lockstep_steps_per_s']
                                                 / figures['inprocess_steps_per_s'])
         figures.update({prefix + key: value for key, value in found.items()})

@@ -1,7 +1,7 @@
 """Reproduce issue 39.2: kill -9 and restart a node N times against the rest of a running loop.
 
     python research/benchmarks/restart_repro.py --restarts 20 [--node policy_node] \
-        [--transports DEFAULT] [--json out.json]
+        [--profile FILE] [--json out.json]
 
 Starts the lockstep loop as the soak does (research/benchmarks/soak.py's Supervisor and
 Observer), then N times: SIGKILL the --node (default sim_node), keep it down --down-seconds,
@@ -12,8 +12,11 @@ whether a parameter request is answered. A restart with no control within
 and gdb, as the tests dump them) and the /dev/shm Fast DDS files are written
 to the log directory with --dump, and the sim is killed again.
 
---transports sets FASTDDS_BUILTIN_TRANSPORTS for the nodes (DEFAULT: SHM and
-UDPv4, Fast DDS's own default; unset: what the nodes choose themselves).
+--profile names the Fast DDS profile of the nodes and the observer (default:
+the nodes' own, config/fastdds_discovery.xml; research/benchmarks/
+fastdds_shared_memory.xml is the shared-memory one it replaced). An earlier
+--transports option set FASTDDS_BUILTIN_TRANSPORTS, which rmw_fastrtps
+ignores under ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: it changed nothing.
 Exit code 0 when every restart got control back, 1 otherwise.
 """
 
@@ -41,7 +44,7 @@ from soak import (check_domain_free, NODE_NAMES, Observer, REPO,  # noqa: E402
                   startup_line_monotonic, Supervisor)
 from zeus_ros.ros_tools.bringup import node_commands, parse_args as bringup_args  # noqa: E402
 from zeus_ros.deploy.checkpoint import load_metadata  # noqa: E402
-from zeus_ros.ros.discovery import use_discovery_profile  # noqa: E402
+from zeus_ros.ros.discovery import PROFILE_ENV, use_discovery_profile  # noqa: E402
 from zeus_ros.ros.loop_spin import wait_until  # noqa: E402
 from zeus_ros.ros.util import call_service  # noqa: E402
 
@@ -118,7 +121,9 @@ def parse(argv=None):
     parser.add_argument('--down-seconds', type=float, default=1.0)
     parser.add_argument('--stuck-after', type=float, default=60.0)
     parser.add_argument('--goal', type=float, default=2.0, help='seconds after the start-up line')
-    parser.add_argument('--transports', help='FASTDDS_BUILTIN_TRANSPORTS for the nodes')
+    parser.add_argument('--profile', type=Path,
+                        help="Fast DDS profile for the nodes and the observer (default: the "
+                             "nodes' own)")
     parser.add_argument('--dump', action='store_true',
                         help='stacks of every process when stuck (py-spy and gdb: slow)')
     parser.add_argument('--log-dir', type=Path)
@@ -131,8 +136,8 @@ def parse(argv=None):
 
 def main(argv=None) -> int:
     args = parse(argv)
-    if args.transports:
-        os.environ['FASTDDS_BUILTIN_TRANSPORTS'] = args.transports
+    if args.profile:   # before use_discovery_profile, which then leaves it alone
+        os.environ[PROFILE_ENV] = str(args.profile.resolve())
     spec = get_family(load_metadata(args.weights).family)
     commands = node_commands(bringup_args(['--weights', str(args.weights),
                                            '--mode', 'lockstep']))
@@ -158,8 +163,7 @@ def main(argv=None) -> int:
         rclpy.try_shutdown()
         observer.spinner.join(timeout=5.0)
     result = {'node': args.node,
-              'transports': args.transports or os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
-              'profile': os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'),
+              'profile': os.environ.get(PROFILE_ENV),
               'load_avg': os.getloadavg()[0], 'log_dir': str(args.log_dir),
               'summary': summary(trials, args.goal), 'trials': [asdict(t) for t in trials]}
     print(json.dumps(result['summary']))

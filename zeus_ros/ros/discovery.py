@@ -1,10 +1,11 @@
-"""The Fast DDS participant profile every zeus_ros node starts with (issue #39.2).
+"""The Fast DDS participant profile every zeus_ros node starts with (issue #39).
 
 Fast DDS reads a default XML profile named by an environment variable when the
 process creates its first participant (rclpy.init). `use_discovery_profile`
 names zeus_ros's own (config/fastdds_discovery.xml: participants announce
-themselves every 0.5 s instead of 3 s) unless the user already named one, or
-the middleware is not Fast DDS.
+themselves every 0.5 s instead of 3 s, and topics and services travel over
+UDPv4, not shared memory, whose ports a killed node can leave stale) unless
+the user already named one, or the middleware is not Fast DDS.
 """
 
 from __future__ import annotations

@@ -144,6 +144,23 @@ def test_estimate_gap_table_gives_the_mean_over_runs():
     assert '| mean +- SE over 2 runs | | -315.0 +- 10.0 | -245.0 +- 0.0 | |' in out
 
 
+def test_live_swaps_table_gives_decoded_means_and_keeps_recipes_apart():
+    sys.path.insert(0, str(ANALYSIS))
+    from live_swaps import RunFigures, table
+    nan = float('nan')
+    figures = [RunFigures('a', 'rma (k=10)', (90.0, 40.0), 130.0, (130.0,), (1.0, 4.0)),
+               RunFigures('b', 'rma (k=10)', (70.0, 60.0), 130.0, (130.0,), (1.2, 3.0)),
+               RunFigures('c', 'rma (k=10, raw extrinsics)', (80.0, 20.0), 100.0, (100.0,),
+                          (1.1, 2.0)),
+               RunFigures('d', 'sac', (95.0, 5.0), 100.0, (100.0,), (nan, nan))]
+    rows = {line.split(' | ')[0].strip('| '): line
+            for line in table(figures, {0: 1.0, 333: 4.0}).splitlines()[2:]}
+    assert rows['rma (k=10)'] == ('| rma (k=10) | 2 | 80 +- 10 | 50 +- 10 | 130 +- 0 '
+                                  '| 1.10 +- 0.10 | 3.50 +- 0.50 |')
+    assert rows['rma (k=10, raw extrinsics)'].endswith('| 1.10 | 2.00 |')   # one run: no +-
+    assert rows['sac'].endswith('| 100 | - | - |')                          # no decoder
+
+
 def test_gaps_table_tests_the_oracle_against_sac_and_the_share_each_method_closes(tmp_path):
     for seed, (oracle, sac, rma) in enumerate([(700, 300, 620), (720, 320, 660),
                                                (710, 280, 640)], start=1):

@@ -114,10 +114,12 @@ def test_soak_fails_when_states_flow_but_nothing_controls_them(tmp_path):
     stopped: the stall goal alone passed such a run.
     """
     # 36 s, swaps at 10, 20 and 30 s: the policy is stopped over 5.4-11.4 s,
-    # the sim over 16.2-23.2 s (the swap at 20 s goes unanswered for its 5 s).
+    # the sim over 16.2-26.2 s, past the end of the swap at 20 s's 5-s window
+    # (a request retried once the sim is back inside its window is answered:
+    # with 7 s, over UDP, the sim answered the retry at 23.2 s).
     proc, result = run_soak(tmp_path, 0.6, ('--restart-at', 'none',
                                             '--pause', 'policy_node:0.15:6',
-                                            '--pause', 'sim_node:0.45:7'),
+                                            '--pause', 'sim_node:0.45:10'),
                             # The controllers' start (torch, weights) takes a minute or
                             # more on a loaded machine; the run's clock starts after it.
                             timeout=300)

@@ -224,5 +224,12 @@ def test_the_series_summary_counts_passes_in_a_row_and_skips_unfinished_runs(tmp
             'swaps': {'accepted': 5, 'requested': 5, 'unanswered': 0}}))
     runs = [summary.read_run(tmp_path, i) for i in range(1, 8)]
     assert [r.passed for r in runs] == outcomes and runs[0].trainings == 2
+    assert runs[0].trainings_at_end is None   # a series from before the end count
+    (tmp_path / 'run_1.txt').write_text('run 1 of 7\ntrainings beside it: 1\n'
+                                        'exit 0; load after: 2.1 1.9 1.5\n'
+                                        'trainings beside it at the end: 2\n')
+    recounted = summary.read_run(tmp_path, 1)
+    assert (recounted.trainings, recounted.trainings_at_end) == (1, 2)
+    assert '| 1 | PASS | 1 / 2 |' in summary.table([recounted])[2]
     assert summary.passes_in_a_row(runs) == 3   # runs 3, 4 and 6 (5 did not finish)
     assert runs[1].failed == ('control back',) and runs[2].steps_per_s == 100.0

@@ -26,7 +26,12 @@ for i in $(seq 1 "$runs"); do
   python research/benchmarks/soak.py --minutes "$minutes" --json "$out/run_$i.json" \
     >>"$out/run_$i.txt" 2>&1 </dev/null
   rc=$?
-  echo "exit $rc; load after: $(cut -d' ' -f1-3 /proc/loadavg)" >>"$out/run_$i.txt"
+  # Counted again at the end: a lane that was writing a report at the start
+  # may have begun its next training during the run.
+  {
+    echo "exit $rc; load after: $(cut -d' ' -f1-3 /proc/loadavg)"
+    echo "trainings beside it at the end: $(pgrep -fc 'zeus_ros.*train --out' || true)"
+  } >>"$out/run_$i.txt"
   echo "[$(date +%T)] soak run $i: exit $rc"
   [[ $rc -ne 0 && "$stop" == --stop-on-fail ]] && exit "$rc"
 done

@@ -3,8 +3,9 @@
     python research/benchmarks/soak_summary.py research/results/soak_series_39 [--out FILE.md]
 
 Reads run_<i>.json (soak.py --json) and run_<i>.txt (the series' header: load
-and trainings beside the run). A run without its JSON did not finish (the
-series was stopped): listed, not counted. Prints Markdown.
+and trainings beside the run, counted at its start and, in later series, at its
+end). A run without its JSON did not finish (the series was stopped): listed,
+not counted. Prints Markdown.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import re
 class SoakRun:
     index: int
     passed: bool | None               # None: no figures (the run did not finish)
-    trainings: int | None
+    trainings: int | None             # beside the run at its start
+    trainings_at_end: int | None      # None: not recorded (series before the end count)
     load_before: str
     restarts_s: dict[str, float | None]   # control back after the start-up line, per node
     failed: tuple[str, ...]
@@ -34,11 +36,21 @@ def _header(text: str, key: str) -> str:
     return found.group(1).strip() if found else ''
 
 
+def _count(text: str, key: str) -> int | None:
+    value = _header(text, key)
+    return int(value) if value.isdigit() else None
+
+
+def _trainings(run: SoakRun) -> str:
+    return str(run.trainings) if run.trainings_at_end is None \
+        else f'{run.trainings} / {run.trainings_at_end}'
+
+
 def read_run(out_dir: Path, index: int) -> SoakRun:
     header = (out_dir / f'run_{index}.txt').read_text()
-    trainings = _header(header, 'trainings beside it')
     figures = out_dir / f'run_{index}.json'
-    common = {'index': index, 'trainings': int(trainings) if trainings.isdigit() else None,
+    common = {'index': index, 'trainings': _count(header, 'trainings beside it'),
+              'trainings_at_end': _count(header, 'trainings beside it at the end'),
               'load_before': _header(header, 'load before')}
     if not figures.is_file():
         return SoakRun(passed=None, restarts_s={}, failed=(), steps_per_s=None,
@@ -72,17 +84,18 @@ def _seconds(value: float | None) -> str:
 
 
 def table(runs: list[SoakRun]) -> list[str]:
-    lines = ['| run | result | trainings beside | load before (1/5/15 min) | control back after '
-             'start-up, s (sim / context / policy) | steps/s | uncontrolled steps | swaps | '
-             'goals missed |', '|---|---|---|---|---|---|---|---|---|']
+    lines = ['| run | result | trainings beside (start / end) | load before (1/5/15 min) | '
+             'control back after start-up, s (sim / context / policy) | steps/s | '
+             'uncontrolled steps | swaps | goals missed |',
+             '|---|---|---|---|---|---|---|---|---|']
     for run in runs:
         if run.passed is None:
-            lines.append(f'| {run.index} | not finished | {run.trainings} | {run.load_before} '
+            lines.append(f'| {run.index} | not finished | {_trainings(run)} | {run.load_before} '
                          '| - | - | - | - | - |')
             continue
         back = ' / '.join(_seconds(run.restarts_s.get(node))
                           for node in ('sim_node', 'context_node', 'policy_node'))
-        lines.append(f'| {run.index} | {"PASS" if run.passed else "FAIL"} | {run.trainings} | '
+        lines.append(f'| {run.index} | {"PASS" if run.passed else "FAIL"} | {_trainings(run)} | '
                      f'{run.load_before} | {back} | {run.steps_per_s} | '
                      f'{run.uncontrolled_steps} | {run.swaps} | '
                      f'{"; ".join(run.failed) or "-"} |')

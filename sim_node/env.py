@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_family,
-                               GOAL_FAMILIES)
+                               GOAL_FAMILIES, TARGET_ORBIT_RATE)
 from sim_node.family_env import FamilyEnv
 from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout, StepResult
 
@@ -99,9 +99,25 @@ class ReachTargetInSpace(base.Task):
                                  sigmoid='long_tail', value_at_margin=0.1)
 
 
+class ReachOrbitingTarget(ReachTargetInSpace):
+    """ReachTargetInSpace with the target started on a circular orbit about the base.
+
+    The target's spring (families.TARGET_ORBIT_RATE) keeps it on the circle;
+    the direction of travel is drawn per episode.
+    """
+
+    def initialize_episode(self, physics: dm_mujoco.Physics):  # noqa: D102
+        super().initialize_episode(physics)
+        qpos, qvel = physics.named.data.qpos, physics.named.data.qvel
+        direction = self.random.choice((-1.0, 1.0))
+        x, y = qpos['target_x'], qpos['target_y']
+        qvel['target_x'] = -direction * TARGET_ORBIT_RATE * y
+        qvel['target_y'] = direction * TARGET_ORBIT_RATE * x
+
+
 def _make_task(spec: FamilySpec, value: float, random: np.random.RandomState):
     if spec.domain == 'reacher':
-        return ReachTargetInSpace(random=random)
+        return (ReachOrbitingTarget if spec.task == 'orbit' else ReachTargetInSpace)(random=random)
     if spec.domain == 'cartpole':
         return cartpole.Balance(swing_up=True, sparse=False, random=random)
     if spec.domain == 'walker':

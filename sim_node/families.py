@@ -140,6 +140,26 @@ def _reacher_forearm_length(xml: str, length: float) -> str:
     return ElementTree.tostring(root, encoding='unicode')
 
 
+# reacher-length-orbit's target: a point mass on an isotropic spring about the
+# arm's base, started on a circle with the speed of a circular orbit, so it
+# goes round at this rate for the whole episode (and across a length swap,
+# which carries the state over) without a scripted trajectory.
+TARGET_ORBIT_RATE = 1.0    # rad/s: a lap in 6.3 s, about 314 control steps
+TARGET_MASS = 0.01         # kg
+
+
+def _reacher_forearm_length_orbit(xml: str, length: float) -> str:
+    # As reacher-length, the target moving: an arm at rest holds no sign of
+    # its length error (research/results/length_sign_ambiguity_*.md), an arm
+    # that follows a moving target keeps showing its dynamics.
+    root = ElementTree.fromstring(_reacher_forearm_length(xml, length))
+    for name in ('target_x', 'target_y'):
+        root.find(f".//joint[@name='{name}']").set(
+            'stiffness', _fmt((TARGET_MASS * TARGET_ORBIT_RATE ** 2,)))
+    root.find(".//body[@name='target']/geom[@name='target']").set('mass', _fmt((TARGET_MASS,)))
+    return ElementTree.tostring(root, encoding='unicode')
+
+
 def _unchanged(xml: str, _value: float) -> str:
     return xml
 
@@ -250,6 +270,7 @@ class FamilySpec:
     edit_xml: Callable[[str, float], str]
     reward_varies_only: bool = False
     episode_steps: int = EPISODE_STEPS
+    task: str = ''   # a variant of the domain's task ('orbit': reacher's moving target)
 
     def split(self, name: str) -> tuple[float, ...]:
         """Parameter values of a split: train, interpolation or extrapolation."""
@@ -390,6 +411,20 @@ FAMILIES: dict[str, FamilySpec] = {
             description='Two-link reacher, target observed, fingertip not; length of the '
                         'forearm, wrist to fingertip (this project, not the paper).',
             edit_xml=_reacher_forearm_length),
+        # The same arm and splits, the target going round the base on a circle
+        # (TARGET_ORBIT_RATE): the arm keeps moving, so its windows keep
+        # showing how the forearm's length shapes its dynamics.
+        FamilySpec(
+            name='reacher-length-orbit', domain='reacher', param_name='forearm_length',
+            param_unit='m', default=0.12,
+            train=(0.08, 0.09, 0.1, 0.11, 0.14, 0.15, 0.16, 0.17),
+            interpolation=(0.12, 0.125, 0.13, 0.135),
+            extrapolation=(0.06, 0.065, 0.07, 0.075, 0.18, 0.19, 0.2, 0.21),
+            live_range=(0.05, 0.25), alpha_psi=1.0,
+            description='Two-link reacher following a target that orbits its base (1 rad/s), '
+                        'target observed, fingertip not; length of the forearm (this '
+                        'project, not the paper).',
+            edit_xml=_reacher_forearm_length_orbit, task='orbit'),
         FamilySpec(
             name='cheetah-run-v1', domain='cheetah', param_name='target_velocity',
             param_unit='m/s', default=1.5,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 from sim_node.env import check_action, ParamEnv
-from sim_node.families import FAMILIES, get_family
+from sim_node.families import FAMILIES, get_family, TARGET_ORBIT_RATE
 from zeus_ros.ros.protocol import parse_command
 
 
@@ -163,6 +163,28 @@ def test_reacher_length_target_is_observed_and_still_and_the_tip_depends_on_the_
     assert np.linalg.norm(tips[0] - tips[1]) > 0.05                # same command, other tip
     assert r_short != r_long
 
+
+
+def test_reacher_orbit_target_circles_the_base_at_its_rate_through_a_length_swap():
+    env = ParamEnv('reacher-length-orbit', 0.12, seed=0)
+    obs = env.reset(seed=4)
+    start = env.joint_positions()[2:]
+    radius = np.hypot(*start)
+    assert 0.10 <= radius <= 0.17 and np.array_equal(obs[3:5], start)
+    angles, radii = [np.arctan2(start[1], start[0])], []
+    for step in range(1000):
+        if step == 500:
+            env.set_values((0.2,))   # the spring and the target's state survive the swap
+        env.step(np.array([0.3, -0.3]))
+        x, y = env.joint_positions()[2:]
+        angles.append(np.arctan2(y, x))
+        radii.append(np.hypot(x, y))
+    np.testing.assert_allclose(radii, radius, rtol=0.02)          # stays on its circle
+    travelled = abs(np.unwrap(angles)[-1] - angles[0])
+    np.testing.assert_allclose(travelled, TARGET_ORBIT_RATE * 1000 * 0.02, rtol=0.02)
+    still = ParamEnv('reacher-length', 0.12, seed=0)
+    still.reset(seed=4)
+    assert not np.array_equal(still.joint_positions()[2:], env.joint_positions()[2:])
 
 def test_a_one_parameter_env_takes_a_value_tuple_of_one():
     env = ParamEnv('walker-walk-v0', 1.0)

@@ -19,7 +19,7 @@ horizon `episode_steps`), and code that takes either reads it through that.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Iterable, Mapping, Protocol, runtime_checkable, Sequence
 import xml.etree.ElementTree as ElementTree
 
@@ -298,6 +298,21 @@ class FamilySpec:
         return check_param(self.live_params, self.name, name, value)
 
 
+# A two-link arm reaching a target given in space, with the fingertip
+# not observed: the joint angles that put the tip on the target
+# depend on the forearm's length. Every target lies within reach of
+# every length in the live range's core (radius 0.10-0.17).
+_REACHER_LENGTH = FamilySpec(
+    name='reacher-length', domain='reacher', param_name='forearm_length',
+    param_unit='m', default=0.12,
+    train=(0.08, 0.09, 0.1, 0.11, 0.14, 0.15, 0.16, 0.17),
+    interpolation=(0.12, 0.125, 0.13, 0.135),
+    extrapolation=(0.06, 0.065, 0.07, 0.075, 0.18, 0.19, 0.2, 0.21),
+    live_range=(0.05, 0.25), alpha_psi=1.0,
+    description='Two-link reacher, target observed, fingertip not; length of the '
+                'forearm, wrist to fingertip (this project, not the paper).',
+    edit_xml=_reacher_forearm_length)
+
 FAMILIES: dict[str, FamilySpec] = {
     spec.name: spec
     for spec in (
@@ -397,34 +412,15 @@ FAMILIES: dict[str, FamilySpec] = {
             description="Cartpole swing-up; length of the pole, mass kept at 0.1 kg "
                         "(CaDM's ranges; this project, not the paper).",
             edit_xml=_cartpole_pole_length),
-        # A two-link arm reaching a target given in space, with the fingertip
-        # not observed: the joint angles that put the tip on the target
-        # depend on the forearm's length. Every target lies within reach of
-        # every length in the live range's core (radius 0.10-0.17).
-        FamilySpec(
-            name='reacher-length', domain='reacher', param_name='forearm_length',
-            param_unit='m', default=0.12,
-            train=(0.08, 0.09, 0.1, 0.11, 0.14, 0.15, 0.16, 0.17),
-            interpolation=(0.12, 0.125, 0.13, 0.135),
-            extrapolation=(0.06, 0.065, 0.07, 0.075, 0.18, 0.19, 0.2, 0.21),
-            live_range=(0.05, 0.25), alpha_psi=1.0,
-            description='Two-link reacher, target observed, fingertip not; length of the '
-                        'forearm, wrist to fingertip (this project, not the paper).',
-            edit_xml=_reacher_forearm_length),
+        _REACHER_LENGTH,
         # The same arm and splits, the target going round the base on a circle
         # (TARGET_ORBIT_RATE): the arm keeps moving, so its windows keep
         # showing how the forearm's length shapes its dynamics.
-        FamilySpec(
-            name='reacher-length-orbit', domain='reacher', param_name='forearm_length',
-            param_unit='m', default=0.12,
-            train=(0.08, 0.09, 0.1, 0.11, 0.14, 0.15, 0.16, 0.17),
-            interpolation=(0.12, 0.125, 0.13, 0.135),
-            extrapolation=(0.06, 0.065, 0.07, 0.075, 0.18, 0.19, 0.2, 0.21),
-            live_range=(0.05, 0.25), alpha_psi=1.0,
-            description='Two-link reacher following a target that orbits its base (1 rad/s), '
-                        'target observed, fingertip not; length of the forearm (this '
-                        'project, not the paper).',
-            edit_xml=_reacher_forearm_length_orbit, task='orbit'),
+        replace(_REACHER_LENGTH, name='reacher-length-orbit',
+                description='Two-link reacher following a target that orbits its base '
+                            '(1 rad/s), target observed, fingertip not; length of the '
+                            'forearm (this project, not the paper).',
+                edit_xml=_reacher_forearm_length_orbit, task='orbit'),
         FamilySpec(
             name='cheetah-run-v1', domain='cheetah', param_name='target_velocity',
             param_unit='m/s', default=1.5,

@@ -57,7 +57,8 @@ def at_length(model: InferenceModel, true: float, told: float, episodes: int,
 
 
 def render(rows: list[AtLength], args: argparse.Namespace, argv: list[str]) -> str:
-    lines = [f'# Told {args.told:g}, true lengths around it: what a window at rest can say',
+    lines = [f'# Told {args.told:g}, true lengths around it: reward and motion once the arm '
+             'has reached',
              '', '`PYTHONPATH=. OMP_NUM_THREADS=1 python '
              f'research/analysis/length_sign_ambiguity.py {" ".join(argv)}`: the policy of '
              f'`{args.weights}` given its latent for '

@@ -164,7 +164,6 @@ def test_reacher_length_target_is_observed_and_still_and_the_tip_depends_on_the_
     assert r_short != r_long
 
 
-
 def test_reacher_orbit_target_circles_the_base_at_its_rate_through_a_length_swap():
     env = ParamEnv('reacher-length-orbit', 0.12, seed=0)
     obs = env.reset(seed=4)
@@ -181,10 +180,12 @@ def test_reacher_orbit_target_circles_the_base_at_its_rate_through_a_length_swap
         radii.append(np.hypot(x, y))
     np.testing.assert_allclose(radii, radius, rtol=0.02)          # stays on its circle
     travelled = abs(np.unwrap(angles)[-1] - angles[0])
-    np.testing.assert_allclose(travelled, TARGET_ORBIT_RATE * 1000 * 0.02, rtol=0.02)
+    np.testing.assert_allclose(travelled, TARGET_ORBIT_RATE * 1000 * env.control_timestep,
+                               rtol=0.02)
     still = ParamEnv('reacher-length', 0.12, seed=0)
     still.reset(seed=4)
     assert not np.array_equal(still.joint_positions()[2:], env.joint_positions()[2:])
+
 
 def test_a_one_parameter_env_takes_a_value_tuple_of_one():
     env = ParamEnv('walker-walk-v0', 1.0)

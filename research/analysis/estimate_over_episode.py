@@ -35,13 +35,15 @@ def window_means(values: np.ndarray) -> list[float]:
     return [float(np.mean(values[a:b])) for a, b in SPANS if a < len(values)]
 
 
-def measure(model: InferenceModel, family: str, value: float, episodes: int) -> tuple:
+def measure(model: InferenceModel, value: float,
+            episodes: int) -> tuple[np.ndarray, np.ndarray]:
     """Per window: mean estimate and mean joint-state change per step, over episodes."""
     estimates, motion = [], []
     for seed in range(episodes):
-        record = run_episode(model, family, value, seed)
+        record = run_episode(model, model.family, value, seed)
         estimates.append(window_means(np.asarray(record.estimates, dtype=float).reshape(-1)))
         moved = np.abs(np.diff(record.observations, axis=0)).mean(axis=1)
+        # Step 0 has no step before it: it counts as moving like step 1, so windows align.
         motion.append(window_means(np.concatenate([[moved[0]], moved])))
     return np.mean(estimates, axis=0), np.mean(motion, axis=0)
 
@@ -63,18 +65,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--values', type=float, nargs='+', required=True, help='true values')
     parser.add_argument('--episodes', type=int, default=2, help='deterministic episodes a value')
     parser.add_argument('--name', default='estimate_over_episode', help='results file name')
+    argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
     model = InferenceModel.load(args.weights)
-    family = model.family
-    rows = [(v, *measure(model, family, v, args.episodes)) for v in args.values]
+    rows = [(v, *measure(model, v, args.episodes)) for v in args.values]
     command = ('PYTHONPATH=. OMP_NUM_THREADS=1 python research/analysis/estimate_over_episode.py '
-               + ' '.join(sys.argv[1:] if argv is None else argv))
-    text = [f'# When {family} reads its parameter: `{args.weights}`', '',
+               + ' '.join(argv))
+    text = [f'# When {model.family} reads its parameter: `{args.weights}`', '',
             f'`{command}`; {args.episodes} deterministic episodes a value (seeds 0..'
             f'{args.episodes - 1}), the mean decoded estimate and the mean absolute change of '
             'the observation per step, by window of steps.', '', *table(rows), '']
-    out = RESULTS / f'{args.name}.md'
-    out.write_text('\n'.join(text))
+    (RESULTS / f'{args.name}.md').write_text('\n'.join(text))
     print('\n'.join(text))
     return 0
 

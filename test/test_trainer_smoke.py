@@ -14,6 +14,7 @@ import pytest
 from test_learning_core import make_agent, make_batch
 from zeus_ros.learning_tools import evaluate, train
 from zeus_ros.core.config import ZeusConfig
+from sim_node.families import get_sim_family
 from zeus_ros.core.methods import METHODS
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
@@ -284,6 +285,25 @@ def test_range_sampling_draws_every_episode_and_swap_inside_the_train_span(tmp_p
     assert abs(np.mean(values < other) - 0.5) > 0.1    # and not in the other's
     with pytest.raises(ValueError, match='train_sampling'):
         ZeusConfig(train_sampling='grid').validate()
+
+
+def test_live_span_draws_over_the_live_range_beyond_the_train_values(tmp_path):
+    """train_span=live: episodes and swaps reach the live range's ends, not only the train span."""
+    overrides = train.parse_overrides([*TINY, 'episode_steps=5', 'train_swap_prob=0.5',
+                                       'train_sampling=log-range', 'train_span=live'])
+    trainer = train.Trainer(train.RunArgs(out=tmp_path / 'run', family=FAMILY, method='oracle',
+                                          steps=0, overrides=overrides))
+    (live_lo, live_hi), = [p.live_range for p in get_sim_family(FAMILY).live_params]
+    lo, hi = min(trainer.values)[0], max(trainer.values)[0]
+    drawn = np.float64([trainer._draw_value()[0] for _ in range(400)])
+    assert live_lo <= drawn.min() < lo and hi < drawn.max() <= live_hi
+    for _ in range(20):                               # swaps put live values into force
+        trainer.collect()
+        trainer.timestep += 1
+    seen = [env.param_values[0] for env in trainer.envs]
+    assert all(live_lo <= v <= live_hi for v in seen)
+    with pytest.raises(ValueError, match="train_span='live' needs"):
+        ZeusConfig(train_span='live').validate()
 
 
 def test_a_task_with_a_success_flag_logs_its_success_rate(tmp_path, capsys):

@@ -31,6 +31,7 @@ from zeus_ros.core.settings import field_types, setting
 PROFILES = ('cpu', 'paper')
 AGGREGATIONS = ('mean', 'sum', 'max')
 TRAIN_SAMPLINGS = ('values', 'range', 'log-range')
+TRAIN_SPANS = ('train', 'live')
 SWAP_DIRECTIONS = ('any', 'down')
 # The config fields the run's own options set (--family, --method, --profile).
 RUN_KEYS = ('family', 'method', 'profile')
@@ -97,6 +98,12 @@ class ZeusConfig:
         "training swap draws uniformly from [min, max] of the train values, per parameter; "
         "'log-range' = log-uniformly (RMA's wide friction). Tasks keep their slots.",
         choices=TRAIN_SAMPLINGS)
+    train_span: str = _f(
+        'train', "What 'range' and 'log-range' draw from: 'train' = [min, max] of the train "
+        "values; 'live' = the family's live range, every value a running robot may be "
+        "swapped to (so no live swap leaves what training saw; the extrapolation split "
+        "then lies inside the span and is no longer held out by range).",
+        choices=TRAIN_SPANS)
     train_swap_direction: str = _f(
         'any', "Where a training swap goes: 'any' other training value, or 'down' to a "
         "lower one only (none from the lowest): for target velocity, a target below the "
@@ -124,9 +131,13 @@ class ZeusConfig:
         self.method_settings.validate()
         for name, allowed in (('profile', PROFILES), ('aggregation', AGGREGATIONS),
                               ('train_sampling', TRAIN_SAMPLINGS),
+                              ('train_span', TRAIN_SPANS),
                               ('train_swap_direction', SWAP_DIRECTIONS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f'{name} must be one of {allowed}, got {getattr(self, name)!r}')
+        if self.train_span != 'train' and self.train_sampling == 'values':
+            raise ValueError("train_span='live' needs train_sampling 'range' or 'log-range' "
+                             "(the listed values have no span to widen)")
         if self.context_length < 1:
             raise ValueError('context_length must be >= 1')
         if self.alpha_psi < 0:

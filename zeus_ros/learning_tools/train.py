@@ -258,6 +258,14 @@ def build_parser() -> argparse.ArgumentParser:
 EVAL_SEED = 10_000
 
 
+def sampling_span(family: str, span: str, values: list[tuple]) -> tuple[np.ndarray, np.ndarray]:
+    """[lo], [hi] per parameter that `train_sampling` draws from (`train_span`)."""
+    if span == 'live':
+        ranges = [p.live_range for p in get_sim_family(family).live_params]
+        return (np.array([lo for lo, _ in ranges]), np.array([hi for _, hi in ranges]))
+    return (np.min(values, axis=0), np.max(values, axis=0))
+
+
 class Trainer:
     """State of one training run: envs, windows, agent, replay, logs."""
 
@@ -270,8 +278,7 @@ class Trainer:
         self.out = Path(args.out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.values = [as_values(v) for v in get_sim_family(args.family).train]
-        # `train_sampling` draws over the train values' span, per parameter.
-        self.span = (np.min(self.values, axis=0), np.max(self.values, axis=0))
+        self.span = sampling_span(args.family, cfg.train_span, self.values)
         self.batch_size = cfg.batch_size_per_task * len(self.values)
         self.envs = [make_env(args.family, v, seed=None, episode_steps=cfg.episode_steps,
                               reward_in_obs=cfg.reward_in_observation) for v in self.values]

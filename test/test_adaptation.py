@@ -69,6 +69,7 @@ def test_oracle_report_identifies_exactly_and_reacts_at_once(oracle):
     assert report.method == 'oracle' and report.context_dim == 1
     assert report.identification.r2_per_step == pytest.approx(1.0)
     assert all(s.steps_to_70pct == 0 for s in report.swaps)
+    assert all(s.steps_to_within_20pct == 0 for s in report.swaps)   # the truth, at once
     assert {r.split for r in report.returns} == {'train', 'interpolation', 'extrapolation'}
     assert report.context_use.split == 'extrapolation'
     assert report.context_use_train.split == 'train'

@@ -14,6 +14,10 @@ order of operations of the ROS loop):
 3. **live swap**: an episode swaps the value at `--swap-step`; reported are the
    control steps until the estimate has covered 70 % of the true change
    (from its mean over the 50 steps before the swap), or None if it never does;
+   and the lag: the steps until the estimate is within 20 % of the new true
+   value in log space (|ln(estimate / true)| <= ln 1.2) and stays there for
+   5 steps, or None if it never does before the episode ends (or if a true
+   value is not positive, where no log-space error exists);
 4. **context use**, at the extrapolation values (where a context is needed if
    anywhere; at the interpolation values for a family without extrapolation):
    the return when the latent is zeroed, frozen at the latent of another
@@ -57,6 +61,11 @@ from zeus_ros.learning_tools.evaluate import EpisodeProbe, run_episode
 
 HELD_OUT = ('interpolation', 'extrapolation')
 COVERED = 0.7
+# The lag after a swap: within 20 % of the true value in log space, held for
+# 5 steps, so that an estimate sweeping through the band on its way elsewhere
+# (overshooting a swap down, say) does not count as having arrived.
+WITHIN = float(np.log(1.2))
+WITHIN_HELD = 5
 
 
 @dataclass
@@ -108,6 +117,9 @@ class SwapResponse:
     from_value: float | list[float]
     to_value: float | list[float]
     steps_to_70pct: int | None
+    # Steps until within 20 % of the new value (log space) for WITHIN_HELD steps;
+    # None: never before the episode ends, or a true value <= 0 (no log space).
+    steps_to_within_20pct: int | None = None
 
 
 @dataclass
@@ -301,6 +313,30 @@ def steps_to_cover(estimates: np.ndarray, swap_step: int, before: Task,
     return int(hits[0]) if hits.size else None
 
 
+def steps_to_within(estimates: np.ndarray, swap_step: int, after: Task,
+                    end: int | None = None) -> int | None:
+    """Count the steps after the swap until the estimate is within 20 % of `after` (log space).
+
+    Counted from the swap step (0: the first estimate under the new value is
+    already within), until WITHIN_HELD steps in a row are within (every
+    parameter, for several), the run wholly before `end`; None if there is no
+    such run, or if a true value is not positive. A non-positive estimate has
+    no logarithm and is never within.
+    """
+    truth = np.asarray(as_values(after), float)
+    if np.any(truth <= 0):
+        return None
+    estimates = np.asarray(estimates, float).reshape(len(estimates), truth.size)
+    with np.errstate(divide='ignore', invalid='ignore'):   # estimates <= 0: NaN / -inf
+        error = np.abs(np.log(estimates[swap_step:end]) - np.log(truth))
+    within = np.all(error <= WITHIN, axis=1)
+    if within.size < WITHIN_HELD:
+        return None
+    held = np.lib.stride_tricks.sliding_window_view(within, WITHIN_HELD).all(axis=1)
+    hits = np.flatnonzero(held)
+    return int(hits[0]) if hits.size else None
+
+
 def _farthest_pair(values: Sequence[Task]) -> tuple:
     """Return the two values farthest apart (a one-parameter split: its extremes)."""
     pairs = [(a, b) for a in values for b in values]
@@ -330,7 +366,8 @@ def swap_responses(model: InferenceModel, spec: SimFamily,
     for a, b in pairs:
         rec = _episodes(model, a, swap_cfg, swap_schedule={swap_step: b})[0]
         out.append(SwapResponse(_json_value(a), _json_value(b),
-                                steps_to_cover(rec.estimates, swap_step, a, b)))
+                                steps_to_cover(rec.estimates, swap_step, a, b),
+                                steps_to_within(rec.estimates, swap_step, b)))
     return out
 
 
@@ -457,9 +494,10 @@ def print_report(report: AdaptationReport) -> None:
             f'{n} R^2 {r2:.3f} Spearman {ident.spearman_per_parameter[n]:.3f}'
             for n, r2 in ident.r2_per_parameter.items()))
     for s in report.swaps:
+        positive = np.all(np.asarray(s.to_value, float) > 0)
         print(f'  swap {format_task(s.from_value)} -> {format_task(s.to_value)}: '
-              f'70 % covered after '
-              f'{f"{s.steps_to_70pct} steps" if s.steps_to_70pct is not None else "never"}')
+              f'70 % covered {_after(s.steps_to_70pct)}, within 20 % (log space, '
+              f'{WITHIN_HELD} steps) {_after(s.steps_to_within_20pct) if positive else "n/a"}')
     for use in (report.context_use, report.context_use_train):
         if use is None:
             continue
@@ -467,6 +505,10 @@ def print_report(report: AdaptationReport) -> None:
               f'frozen at other value {use.frozen_other:.1f}, '
               f'inferred from other physics {use.inferred_other:.1f}')
         print(f'  at the {use.split} values the policy {use.verdict}')
+
+
+def _after(steps: int | None) -> str:
+    return 'never' if steps is None else f'after {steps} steps'
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -135,6 +135,7 @@ def test_the_script_writes_finite_tables_for_real_checkpoints(tmp_path):
                            'research/analysis/random_schedules.py --runs')
     for head in ('| method | runs | return | share of the sac-oracle gap',
                  '| method | direction | region | swaps | median lag',
+                 '| method | below train | low | mid | high | above train |',
                  '| method | up: covered / swaps'):
         assert head in text
     returns = text.split('| method | runs | return')[1].split('\n\n')[0]
@@ -149,3 +150,7 @@ def test_the_script_writes_finite_tables_for_real_checkpoints(tmp_path):
     assert all(math.isfinite(x) for x in [*rma['returns'], rma['r2_log']]
                + [s['error_all'] for s in rma['segments']])
     assert all(s['lag'] == 0 for s in figures[1]['swaps'])   # the oracle reads the truth
+    # sac has segments (their rewards) but no estimate, so no swaps to time
+    assert figures[0]['swaps'] == [] and len(figures[0]['segments']) == len(rma['segments'])
+    assert all(math.isfinite(s['reward']) and s['error_all'] is None
+               for s in figures[0]['segments'])

@@ -25,6 +25,8 @@ test_parity) for every run folder given, and measures:
   segment ends first is censored: counted as such, never averaged as a
   number; its median sorts it after every measured lag ('never' when half or
   more are censored);
+- the mean reward per step in the segments at each region's values (where
+  a method gains or loses against the references);
 - issue #47 item 3's target: the share of swaps inside the train range (both
   values in the train span) whose estimate covers 70 % of the change in log
   space within 20 steps. This is the adaptation report's "swaps within 20
@@ -82,7 +84,8 @@ class SegmentFigures:
     value: float
     region: str
     direction: str          # of the swap that began it; 'start' for the episode's first
-    error_all: float        # mean |ln(estimate / true)| over its steps
+    reward: float           # mean reward per step over it
+    error_all: float        # mean |ln(estimate / true)| over its steps (NaN: no estimate)
     error_settled: float    # the same after its first SETTLE steps
 
 
@@ -176,12 +179,13 @@ def log_errors(estimates: np.ndarray, truth: np.ndarray, floor: float) -> np.nda
     return np.abs(np.log(np.maximum(estimates, floor)) - np.log(truth))
 
 
-def segment_figures(errors: np.ndarray, start: int, end: int, value: float, direction: str,
+def segment_figures(rewards: np.ndarray, errors: np.ndarray, start: int, end: int,
+                    value: float, direction: str,
                     train_span: tuple[float, float]) -> SegmentFigures:
-    """Error over one segment's steps [start, end), all and after the first SETTLE."""
+    """Reward and error over one segment's steps [start, end), the error also after SETTLE."""
     settled = errors[start + SETTLE:end]
     return SegmentFigures(start, end - start, value, region(value, train_span), direction,
-                          float(errors[start:end].mean()),
+                          float(rewards[start:end].mean()), float(errors[start:end].mean()),
                           float(settled.mean()) if settled.size else math.nan)
 
 
@@ -201,17 +205,20 @@ def swap_figures(estimates: np.ndarray, floor: float, start: int, end: int, befo
 
 def episode_figures(rec: EpisodeRecord, schedule: dict[int, float], floor: float,
                     train_span: tuple[float, float]) -> tuple[list, list]:
-    """Segments and swaps of one episode with an estimate (cut short if it ended early)."""
+    """Segments of one episode (cut short if it ended early) and, with an estimate, swaps."""
     estimates = np.asarray(rec.estimates, float).reshape(len(rec.rewards))
-    errors = log_errors(estimates, np.asarray(rec.param_values, float), floor)
+    measured = not np.all(np.isnan(estimates))   # sac, or a latent with no decoder: no estimate
+    errors = (log_errors(estimates, np.asarray(rec.param_values, float), floor) if measured
+              else np.full(len(estimates), math.nan))
     starts = [s for s in schedule if s < len(estimates)]
     ends = [*starts[1:], len(estimates)]
     segments, swaps = [], []
     for i, (start, end) in enumerate(zip(starts, ends, strict=True)):
         value = schedule[start]
         direction = 'start' if i == 0 else ('up' if value > schedule[starts[i - 1]] else 'down')
-        segments.append(segment_figures(errors, start, end, value, direction, train_span))
-        if i:
+        segments.append(segment_figures(np.asarray(rec.rewards, float), errors, start, end,
+                                        value, direction, train_span))
+        if i and measured:
             swaps.append(swap_figures(estimates, floor, start, end, schedule[starts[i - 1]],
                                       value, train_span))
     return segments, swaps
@@ -233,11 +240,11 @@ def run_result(path: Path, episodes: int, seed: int, steps: int,
         rec = run_episode(model, model.family, schedule[0], e, max_steps=steps,
                           swap_schedule={s: v for s, v in schedule.items() if s})
         returns.append(float(rec.episode_return))
-        if np.all(np.isnan(rec.estimates)):   # sac (or a latent with no decoder): no estimate
-            continue
         seg, sw = episode_figures(rec, schedule, floor, train_span)
         segments += seg
         swap_list += sw
+        if np.all(np.isnan(rec.estimates)):
+            continue
         truth.append(np.log(np.asarray(rec.param_values, float)[model.k:]))
         estimate.append(np.log(np.maximum(np.asarray(rec.estimates, float)[model.k:], floor)))
     r2 = r_squared(np.concatenate(truth), np.concatenate(estimate)) if truth else None
@@ -328,6 +335,16 @@ def lag_table(results: list[RunResult]) -> str:
     return '\n'.join(lines)
 
 
+def region_reward_table(results: list[RunResult]) -> str:
+    """Markdown: mean reward per step in the segments at each region's values, per method."""
+    lines = ['| method | ' + ' | '.join(REGIONS) + ' |', '|---|' + '---|' * len(REGIONS)]
+    for label, runs in groups_of(results).items():
+        cells = [mean_se([_run_mean([s.reward for s in r.segments if s.region == where])
+                          for r in runs], 3) for where in REGIONS]
+        lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
 def coverage_table(results: list[RunResult]) -> str:
     """Markdown: item 3's target, swaps inside the train range covered 70 % within 20 steps."""
     lines = ['| method | up: covered / swaps | share | down: covered / swaps | share |',
@@ -372,11 +389,26 @@ def report(results: list[RunResult], args: argparse.Namespace) -> str:
             f'{returns_table(results)}\n\n'
             'Per swap, by direction and region of the new value (lag: steps until within '
             '20 % of the true value in log space for 5 steps; censored: not within before '
-            "the segment ended; all runs' swaps pooled):\n\n"
+            "the segment ended; all runs' swaps pooled, every run running the same "
+            'draws):\n\n'
             f'{lag_table(results)}\n\n'
+            'Mean reward per step over the segments at values in each region (every '
+            "segment, the first included; a run's mean over its segments):\n\n"
+            f'{region_reward_table(results)}\n\n'
             'Swaps with both values inside the train range, 70 % of the change (log space) '
             'covered within 20 steps (issue #47 item 3):\n\n'
             f'{coverage_table(results)}\n')
+
+
+def without_nan(value: object) -> object:
+    """Return `value` with every NaN float replaced by None (JSON has no NaN)."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {k: without_nan(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [without_nan(v) for v in value]
+    return value
 
 
 def write_out(out: Path, text: str, results: list[RunResult], argv: list[str]) -> None:
@@ -384,11 +416,12 @@ def write_out(out: Path, text: str, results: list[RunResult], argv: list[str]) -
     out.parent.mkdir(parents=True, exist_ok=True)
     command = ' '.join(['PYTHONPATH=. OMP_NUM_THREADS=1 python',
                         'research/analysis/random_schedules.py', *argv])
-    runs = '\n'.join(f'- `{r.run}` ({r.label}): by episode seed '
-                      + ', '.join(f'{x:.0f}' for x in r.returns) for r in results)
-    out.write_text(f'`{command}`\n\n{text}\nEpisode returns per run:\n\n{runs}\n')
+    listing = '\n'.join(f'- `{r.run}` ({r.label}): by episode seed '
+                         + ', '.join(f'{x:.0f}' for x in r.returns) for r in results)
+    out.write_text(f'`{command}`\n\n{text}\nEpisode returns per run:\n\n{listing}\n')
+    figures = without_nan([asdict(r) for r in results])   # NaN: not measured (no estimate)
     out.with_suffix('.json').write_text(json.dumps(
-        {'command': command, 'runs': [asdict(r) for r in results]}, indent=1) + '\n')
+        {'command': command, 'runs': figures}, indent=1, allow_nan=False) + '\n')
 
 
 def main(argv: list[str] | None = None) -> int:

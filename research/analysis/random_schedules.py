@@ -400,14 +400,14 @@ def report(results: list[RunResult], args: argparse.Namespace) -> str:
             f'{coverage_table(results)}\n')
 
 
-def without_nan(value: object) -> object:
-    """Return `value` with every NaN float replaced by None (JSON has no NaN)."""
-    if isinstance(value, float) and math.isnan(value):
-        return None
+def json_ready(value: object) -> object:
+    """Return `value` with NaN as None (JSON has none) and floats to 6 significant digits."""
+    if isinstance(value, float):
+        return None if math.isnan(value) else float(f'{value:.6g}')
     if isinstance(value, dict):
-        return {k: without_nan(v) for k, v in value.items()}
+        return {k: json_ready(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [without_nan(v) for v in value]
+        return [json_ready(v) for v in value]
     return value
 
 
@@ -419,9 +419,9 @@ def write_out(out: Path, text: str, results: list[RunResult], argv: list[str]) -
     listing = '\n'.join(f'- `{r.run}` ({r.label}): by episode seed '
                          + ', '.join(f'{x:.0f}' for x in r.returns) for r in results)
     out.write_text(f'`{command}`\n\n{text}\nEpisode returns per run:\n\n{listing}\n')
-    figures = without_nan([asdict(r) for r in results])   # NaN: not measured (no estimate)
-    out.with_suffix('.json').write_text(json.dumps(
-        {'command': command, 'runs': figures}, indent=1, allow_nan=False) + '\n')
+    figures = json_ready([asdict(r) for r in results])   # NaN: not measured (no estimate)
+    out.with_suffix('.json').write_text(json.dumps(   # compact: a few hundred swaps per run
+        {'command': command, 'runs': figures}, separators=(',', ':'), allow_nan=False) + '\n')
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,6 +18,7 @@ from sim_node.families import get_sim_family
 from zeus_ros.core.methods import METHODS
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import InferenceModel
+from zeus_ros.core.window import ContextWindow
 
 FAMILY = 'finger-spin-v0'
 TINY = ['hidden_dim=32', 'context_dim=6', 'feature_dim=8', 'encoder_hidden=16',
@@ -304,6 +305,34 @@ def test_live_span_draws_over_the_live_range_beyond_the_train_values(tmp_path):
     assert all(live_lo <= v <= live_hi for v in seen)
     with pytest.raises(ValueError, match="train_span='live' needs"):
         ZeusConfig(train_span='live').validate()
+
+
+def test_param_space_log_normalises_logs_and_the_checkpoint_decodes_back(tmp_path):
+    """param_space=log: the oracle sees ln(value) min-max scaled; the checkpoint says so.
+
+    The saved metadata passes its schema, and a deployed decoder's 0.5 reads back as the
+    train values' geometric midpoint (exp of the log mean), not their linear one.
+    """
+    run = tmp_path / 'run'
+    argv = ['--family', FAMILY, '--method', 'oracle', '--steps', '20', '--seed', '1',
+            '--out', str(run), '--eval-every', '1000', '--checkpoint-every', '20',
+            '--set', *TINY, 'init_steps=10', 'num_threads=1', 'param_space=log']
+    assert train.main(argv) == 0
+    model = InferenceModel.load(run / 'checkpoint')
+    norm = model.meta.param_normalisation
+    values = np.log(np.float64(norm.train_values))
+    assert norm.log and norm.offset == pytest.approx(values.min())
+    assert norm.scale == pytest.approx(values.max() - values.min())
+    rows, mask = ContextWindow(model.k, model.obs_dim, model.action_dim).arrays()
+    low, high = min(norm.train_values), max(norm.train_values)
+    assert model.context(rows, mask, low)[0] == pytest.approx(0.0, abs=1e-6)   # oracle: e
+    assert model.context(rows, mask, high)[0] == pytest.approx(1.0, abs=1e-6)
+    geo = float(np.sqrt(low * high))                 # the log midpoint reads 0.5, not linear
+    assert model.context(rows, mask, geo)[0] == pytest.approx(0.5, abs=1e-5)
+    model._decode = lambda latent: np.float32([[0.5]])   # what a decoder would read
+    assert model.decode_values(np.zeros(model.context_dim))[0] == pytest.approx(geo)
+    with pytest.raises(ValueError, match='train_sampling|param_space'):
+        ZeusConfig(param_space='sqrt').validate()
 
 
 def test_a_task_with_a_success_flag_logs_its_success_rate(tmp_path, capsys):

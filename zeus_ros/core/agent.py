@@ -49,15 +49,21 @@ CORE_OPTIMIZERS = ('critic_opt', 'actor_opt', 'alpha_opt')
 CORE_METRICS = ('critic_loss', 'q1', 'actor_loss', 'alpha_loss', 'alpha', 'entropy')
 
 
-def param_normaliser(train_values: Sequence[float | Sequence[float]]) -> ParamScale:
-    """Min-max normalisation mapping the train values onto [0, 1], per parameter.
+def param_normaliser(train_values: Sequence[float | Sequence[float]],
+                     log: bool = False) -> ParamScale:
+    """Min-max normalisation mapping the train values (or their logs) onto [0, 1], per parameter.
 
     `train_values`: numbers (a one-parameter family) or value tuples.
     """
     values = np.asarray(train_values, dtype=np.float64)
     values = values.reshape(len(values), -1)
+    if log:
+        if (values <= 0).any():
+            raise ValueError("param_space='log' needs positive train values, got "
+                             f'{values.min():g}')
+        values = np.log(values)
     lo, hi = values.min(axis=0), values.max(axis=0)
-    return ParamScale(tuple(lo), tuple(np.where(hi > lo, hi - lo, 1.0)))
+    return ParamScale(tuple(lo), tuple(np.where(hi > lo, hi - lo, 1.0)), log)
 
 
 def build_method(cfg: ZeusConfig, obs_dim: int, action_dim: int, param: ParamScale,

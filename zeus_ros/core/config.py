@@ -32,6 +32,7 @@ PROFILES = ('cpu', 'paper')
 AGGREGATIONS = ('mean', 'sum', 'max')
 TRAIN_SAMPLINGS = ('values', 'range', 'log-range')
 TRAIN_SPANS = ('train', 'live')
+PARAM_SPACES = ('linear', 'log')
 SWAP_DIRECTIONS = ('any', 'down')
 # The config fields the run's own options set (--family, --method, --profile).
 RUN_KEYS = ('family', 'method', 'profile')
@@ -98,6 +99,12 @@ class ZeusConfig:
         "training swap draws uniformly from [min, max] of the train values, per parameter; "
         "'log-range' = log-uniformly (RMA's wide friction). Tasks keep their slots.",
         choices=TRAIN_SAMPLINGS)
+    param_space: str = _f(
+        'linear', "How every network that reads or estimates the parameter sees it (the "
+        "oracle's input, rma's raw extrinsics, decoders and identification targets): "
+        "'linear' = min-max over the train values; 'log' = min-max of their logarithms, "
+        'for a positive scale spanning orders of magnitude (friction 0.05-4.5: 0.05 -> 0.1 '
+        'then weighs as 2 -> 4).', choices=PARAM_SPACES)
     train_span: str = _f(
         'train', "What 'range' and 'log-range' draw from: 'train' = [min, max] of the train "
         "values; 'live' = the family's live range, every value a running robot may be "
@@ -132,6 +139,7 @@ class ZeusConfig:
         for name, allowed in (('profile', PROFILES), ('aggregation', AGGREGATIONS),
                               ('train_sampling', TRAIN_SAMPLINGS),
                               ('train_span', TRAIN_SPANS),
+                              ('param_space', PARAM_SPACES),
                               ('train_swap_direction', SWAP_DIRECTIONS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f'{name} must be one of {allowed}, got {getattr(self, name)!r}')

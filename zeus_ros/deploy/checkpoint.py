@@ -44,8 +44,9 @@ import torch
 from zeus_ros.core.config import ZeusConfig
 from zeus_ros.deploy.metadata import (ActionLayoutMeta, CheckpointMetadata, CONFIG_LIMITS,
                                       ContextMeta, FileMeta, FORMAT_VERSION, LAYERS,
-                                      MetadataError, ObsLayoutMeta, ParamNormMeta, parse_section,
-                                      RunMeta, StepsMeta, WIDTH)
+                                      LOG_NORMALISATION, MetadataError, NORMALISATION,
+                                      ObsLayoutMeta, ParamNormMeta, parse_section, RunMeta,
+                                      StepsMeta, WIDTH)
 
 if TYPE_CHECKING:
     from zeus_ros.core.agent import Agent
@@ -257,9 +258,10 @@ def _normalisation(param: ParamScale,
                    train_values: Sequence[float | Sequence[float]]) -> ParamNormMeta:
     """Return the normalisation: offset and scale numbers for one parameter, else lists."""
     values = tuple(v if isinstance(v, float | int) else tuple(v) for v in train_values)
+    formula = LOG_NORMALISATION if param.log else NORMALISATION
     if param.param_dim == 1:
-        return ParamNormMeta(param.offset[0], param.scale[0], values)
-    return ParamNormMeta(tuple(param.offset), tuple(param.scale), values)
+        return ParamNormMeta(param.offset[0], param.scale[0], values, formula)
+    return ParamNormMeta(tuple(param.offset), tuple(param.scale), values, formula)
 
 
 def _verified_tensors(path: Path, meta: CheckpointMetadata, name: str) -> dict:
@@ -341,7 +343,8 @@ def _policy_networks(meta: CheckpointMetadata, cfg: ZeusConfig) -> tuple:
     from zeus_ros.core.methods import ParamScale
     obs, act = meta.obs_layout.obs_dim, meta.action_layout.action_dim
     norm = meta.param_normalisation
-    method = build_method(cfg, obs, act, ParamScale(norm.offsets, norm.scales), training=False)
+    method = build_method(cfg, obs, act, ParamScale(norm.offsets, norm.scales, norm.log),
+                          training=False)
     return method, {**build_policy_modules(cfg, obs, method.context_dim, act),
                     **method.inference_modules()}
 

@@ -115,7 +115,8 @@ class DeployedModel:
         normalised = self._decode(np.asarray(latent, dtype=np.float32).reshape(1, -1))
         if normalised is None:
             return np.full(len(self.param_names), math.nan)
-        return normalised[0].astype(np.float64) * self.param_scale + self.param_offset
+        value = normalised[0].astype(np.float64) * self.param_scale + self.param_offset
+        return np.exp(value) if self.meta.param_normalisation.log else value
 
     def decode(self, latent: np.ndarray) -> float:
         """Return the estimate of a one-parameter family's parameter (NaN without a decoder)."""

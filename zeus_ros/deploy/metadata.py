@@ -45,6 +45,7 @@ FORMAT_VERSION = 1
 ROW_LAYOUT = 'concat(s, a, [r], s_next) float32'
 EMPTY_WINDOW = 'zero latent'
 NORMALISATION = '(value - offset) / scale'
+LOG_NORMALISATION = '(ln(value) - offset) / scale'   # param_space='log'
 ACTION_RANGE = (-1.0, 1.0)
 
 
@@ -170,6 +171,11 @@ class ParamNormMeta(Section):
     scale: float | tuple[float, ...]
     train_values: tuple[float | tuple[float, ...], ...] = ()
     formula: str = NORMALISATION
+
+    @property
+    def log(self) -> bool:
+        """Whether the min-max is of the values' logarithms (`param_space='log'`)."""
+        return self.formula == LOG_NORMALISATION
 
     @property
     def offsets(self) -> tuple[float, ...]:
@@ -412,7 +418,8 @@ CONFIG_LIMITS: dict[str, Between | None] = {
     **dict.fromkeys(('family', 'method', 'profile', 'aggregation', 'context_input',
                      'context_encoder', 'dynamics_loss', 'train_swap_direction',
                      'context_critic_grad', 'metric_normalise', 'reward_in_observation',
-                     'train_sampling', 'train_span', 'rma_latent', 'rma_asymmetric')),
+                     'train_sampling', 'train_span', 'param_space', 'rma_latent',
+                     'rma_asymmetric')),
     'context_length': Between(1, 10_000),
     **dict.fromkeys(('context_dim', 'context_hidden', 'feature_dim', 'encoder_hidden',
                      'hidden_dim', 'dynamics_hidden', 'decoder_hidden', 'hyper_model_hidden'),
@@ -440,7 +447,7 @@ LATER_CONFIG_KEYS = frozenset({
     'method', 'context_input', 'context_encoder', 'context_critic_grad', 'metric_normalise',
     'id_weight', 'backward_weight', 'osi_warmup_updates', 'hyper_model_hidden',
     'reward_in_observation', 'train_swap_prob', 'train_swap_direction', 'train_sampling',
-    'train_span',
+    'train_span', 'param_space',
     'rma_student_after_updates', 'rma_latent', 'rma_asymmetric'})
 
 
@@ -591,8 +598,8 @@ def _rows(norm: ParamNormMeta) -> list[tuple[float, ...]]:
 
 def _normalisation_shape(norm: ParamNormMeta, names: tuple[str, ...]):
     path = 'param_normalisation'
-    yield (norm.formula == NORMALISATION, f'{path}.formula',
-           f'must be {NORMALISATION!r}, got {shown(norm.formula)}')
+    yield (norm.formula in (NORMALISATION, LOG_NORMALISATION), f'{path}.formula',
+           f'must be {NORMALISATION!r} or {LOG_NORMALISATION!r}, got {shown(norm.formula)}')
     for label, values in (('offset', norm.offsets), ('scale', norm.scales)):
         yield (len(values) == len(names), f'{path}.{label}',
                f'needs one entry per parameter {list(names)}, got {len(values)}')
@@ -612,6 +619,12 @@ def _values_in_range(norm: ParamNormMeta, live_params: tuple[LiveParam, ...]):
         yield (all(lo <= v <= hi for v in column), f'{path}.train_values',
                f'{param.name} values must lie in its range [{lo:g}, {hi:g}], '
                f'got {shown(column)}')
+        if norm.log:
+            yield (lo > 0, f'{path}.formula', f'{param.name} has values <= 0 in its range '
+                                              f'[{lo:g}, {hi:g}]: no logarithm of them')
+            if lo <= 0:
+                return
+            lo, hi = math.log(lo), math.log(hi)   # offset and scale are of the logs
         if rows:
             continue
         yield (lo <= norm.offsets[i] <= hi, f'{path}.offset',
@@ -628,6 +641,10 @@ def _derived_normalisation(norm: ParamNormMeta):
     columns = list(zip(*_rows(norm), strict=True))
     if not columns:
         return   # nothing to derive them from: the family's ranges bound them
+    if norm.log:
+        if min(min(column) for column in columns) <= 0:
+            return   # _values_in_range refuses them
+        columns = [[math.log(v) for v in column] for column in columns]
     lows = [min(column) for column in columns]
     spans = [max(column) - min(column) if max(column) > min(column) else 1.0
              for column in columns]

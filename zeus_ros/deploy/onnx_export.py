@@ -168,7 +168,8 @@ def manifest_for(meta: CheckpointMetadata, method: ContextMethod, modules: dict[
         'needs_true_param': method.needs_true_param,
         'graphs': graphs,
         'empty_latent': 'context_dim 0: no context graph; the actor reads a [B, 0] latent',
-        'estimate': {'formula': 'normalised * scale + offset', 'offset': list(norm.offsets),
+        'estimate': {'formula': 'exp(normalised * scale + offset)' if norm.log
+                     else 'normalised * scale + offset', 'offset': list(norm.offsets),
                      'scale': list(norm.scales), 'names': list(meta.names)},
         'metadata': meta.to_dict(),
     }

@@ -85,7 +85,8 @@ def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
 
 def make_agent(cfg: ZeusConfig, env: FamilyEnv) -> Agent:
     """Agent sized for the env, with the parameter normalised on the train values."""
-    return Agent(cfg, env.obs_dim, env.action_dim, param_normaliser(env.spec.train))
+    return Agent(cfg, env.obs_dim, env.action_dim,
+                 param_normaliser(env.spec.train, log=cfg.param_space == 'log'))
 
 
 def make_replay(cfg: ZeusConfig, env: FamilyEnv, agent: Agent, seed: int) -> ReplayBuffer:

@@ -142,7 +142,7 @@ def test_the_script_writes_finite_tables_for_real_checkpoints(tmp_path):
     rows = {line.split(' | ')[0].strip('| '): line for line in returns.splitlines()[2:]}
     assert rows.keys() == {'oracle (swaps in training)', 'sac (swaps in training)',
                            'rma (k=10, swaps in training, raw extrinsics)'}
-    assert '| 100% | 1.00 | 0.00 | 0.00 |' in rows['oracle (swaps in training)']
+    assert '| 100% | 1.00 | 1.00 | 0.00 | 0.00 |' in rows['oracle (swaps in training)']
     assert '| 0% | - | - | - |' in rows['sac (swaps in training)']
     figures = json.loads(out.with_suffix('.json').read_text())['runs']
     rma = figures[2]

@@ -59,11 +59,17 @@ def parse_schedule(text: str) -> dict[int, float]:
 
 def run_label(model: InferenceModel) -> str:
     """Name a run by its method, window, recipe and whether it trained with swaps."""
-    swaps = ', swaps in training' if model.meta.config.get('train_swap_prob', 0.0) else ''
+    config = model.meta.config
+    swaps = ', swaps in training' if config.get('train_swap_prob', 0.0) else ''
+    if config.get('train_swap_prob', 0.0) not in (0.0, 0.004):   # the recipes' rate (RMA's)
+        swaps += f' at {config["train_swap_prob"]:g}'
+    # Recipes that differ in what training visits or how the parameter is read (#47).
+    swaps += ', live span' if config.get('train_span') == 'live' else ''
+    swaps += ', log parameter' if config.get('param_space') == 'log' else ''
     if model.method_name in ('sac', 'oracle'):   # no window: the context is none or the truth
         return model.method_name + (f' ({swaps[2:]})' if swaps else '')
     # rma's raw-parameter ablation is another recipe, not another seed of the same one.
-    raw = ', raw extrinsics' if model.meta.config.get('rma_latent') is False else ''
+    raw = ', raw extrinsics' if config.get('rma_latent') is False else ''
     return f'{model.method_name} (k={model.k}{swaps}{raw})'
 
 

@@ -1,0 +1,222 @@
+"""Family files (#48): the schema, the edit kinds on a real MuJoCo model, every bad input."""
+
+from pathlib import Path
+import shutil
+
+from conftest import REPO
+import mujoco
+import numpy as np
+import pytest
+import yaml
+
+from sim_node.env import make_env
+from sim_node.families import get_sim_family, SimFamily
+from sim_node.family_edits import family_model, load_family_file
+from sim_node.family_env import FamilyEnv
+from sim_node.family_file import FamilyFileError, read_family_file
+
+HOPPER = REPO / 'examples' / 'hopper' / 'hopper.yaml'
+BODY, SITE, GEOM = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_SITE, mujoco.mjtObj.mjOBJ_GEOM
+
+
+def hopper_doc() -> dict:
+    return yaml.safe_load(HOPPER.read_text())
+
+
+def written(tmp_path: Path, doc: dict | str, name: str = 'robot.yaml') -> Path:
+    """Write a family file beside a copy of the Hopper's MJCF; return its path."""
+    shutil.copy(HOPPER.parent / 'hopper.xml', tmp_path / 'hopper.xml')
+    path = tmp_path / name
+    path.write_text(doc if isinstance(doc, str) else yaml.safe_dump(doc))
+    return path
+
+
+def refusal(path: Path) -> str:
+    with pytest.raises(FamilyFileError) as caught:
+        load_family_file(path)
+    message = str(caught.value)
+    assert '\n' not in message and message.startswith(f'{path}: '), message
+    return message
+
+
+# -- the worked example ---------------------------------------------------------------
+def test_the_hopper_file_is_a_family_every_tool_takes_by_name():
+    spec = load_family_file(HOPPER)
+    assert isinstance(spec, SimFamily) and get_sim_family(spec.name) is spec
+    assert spec.param_names == ('floor_friction', 'leg_length')
+    # log-uniform quantiles of [0.5, 2] at 1/4 and 3/4, times the listed lengths
+    assert [round(f, 6) for f, _ in spec.train] == [0.707107, 0.707107, 1.414214, 1.414214]
+    assert {length for _, length in spec.train} == {0.42, 0.54}
+    assert (1.0, 0.34) in spec.extrapolation and (0.2, 0.5) in spec.extrapolation
+    env = make_env(spec.name, (1.0, 0.5), seed=0)
+    assert isinstance(env, FamilyEnv)
+    assert env.layout.joint_names[0] == 'rootx' and env.layout.position_encoding[0] == 'drop'
+    assert env.obs_dim == 12 and env.action_dim == 3 and env.control_timestep == 0.008
+
+
+def test_loading_the_same_file_twice_is_harmless_and_a_builtin_name_is_refused(tmp_path):
+    assert load_family_file(HOPPER) is not None
+    assert load_family_file(HOPPER).name == 'hopper-friction-leg'
+    doc = hopper_doc()
+    doc['name'] = 'walker-walk-v0'
+    assert 'is a built-in family' in refusal(written(tmp_path, doc))
+    doc['name'] = 'hopper-friction-leg'
+    doc['description'] = 'another robot of the same name'
+    assert 'a different family file named' in refusal(written(tmp_path, doc))
+
+
+# -- the edit kinds ------------------------------------------------------------------
+def test_a_friction_swap_is_a_direct_write_that_changes_only_friction():
+    env = make_env(load_family_file(HOPPER).name, (1.0, 0.5), seed=0)
+    env.reset(seed=3)
+    for _ in range(20):
+        env.step(np.full(3, 0.3))
+    before = {name: getattr(env.model, name).copy() for name in
+              ('geom_friction', 'geom_size', 'body_pos', 'body_mass', 'geom_pos')}
+    qpos = env.data.qpos.copy()
+    prepared = env.prepare_values((0.3, 0.5))
+    assert prepared.model is None          # no compile: MuJoCo allows this field live
+    env.apply_prepared(prepared)
+    assert np.all(env.model.geom_friction[:, 0] == 0.3)
+    assert np.array_equal(env.model.geom_friction[:, 1:], before['geom_friction'][:, 1:])
+    for name in ('geom_size', 'body_pos', 'body_mass', 'geom_pos'):
+        assert np.array_equal(getattr(env.model, name), before[name]), name
+    assert np.array_equal(env.data.qpos, qpos) and env.param_values == (0.3, 0.5)
+
+
+def end_of_leg(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """World position of the leg capsule's lower end-cap centre."""
+    g = mujoco.mj_name2id(model, GEOM, 'leg_geom')
+    return data.geom_xpos[g] - model.geom_size[g, 1] * data.geom_xmat[g].reshape(3, 3)[:, 2]
+
+
+def test_a_length_swap_moves_what_hangs_from_the_segments_end_and_keeps_the_state():
+    env = make_env(load_family_file(HOPPER).name, (1.0, 0.5), seed=0)
+    env.reset(seed=3)
+    for _ in range(10):
+        env.step(np.full(3, 0.2))
+    model, data = env.model, env.data
+    mujoco.mj_forward(model, data)   # mj_step leaves the kinematics one substep behind qpos
+    foot = mujoco.mj_name2id(model, BODY, 'foot')
+    knee = data.xanchor[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, 'leg_joint')].copy()
+    ankle_from_end = data.xpos[foot] - end_of_leg(model, data)
+    qpos, qvel, leg_mass = data.qpos.copy(), data.qvel.copy(), model.body_mass[3]
+    prepared = env.prepare_values((1.0, 0.58))
+    assert prepared.model is not None
+    env.apply_prepared(prepared)
+    # The segment is 0.58 m from the knee (which stays) to its end ...
+    assert np.linalg.norm(end_of_leg(model, data) - knee) == pytest.approx(0.58, abs=1e-9)
+    # ... and the foot hangs from that end as it did.
+    assert np.allclose(data.xpos[foot] - end_of_leg(model, data), ankle_from_end, atol=1e-9)
+    assert model.body_mass[3] > leg_mass           # keep_density: a longer leg is heavier
+    assert np.array_equal(data.qpos, qpos) and np.array_equal(data.qvel, qvel)
+
+
+def test_keep_mass_keeps_the_segments_body_mass(tmp_path):
+    doc = hopper_doc()
+    doc['name'] = 'hopper-keep-mass'
+    doc['parameters'][1]['edit']['mass_rule'] = 'keep_mass'
+    spec = load_family_file(written(tmp_path, doc))
+    short, long = (family_model(spec).compile((1.0, v)) for v in (0.3, 0.6))
+    assert short.body_mass[3] == pytest.approx(long.body_mass[3], rel=1e-12)
+    assert not np.allclose(short.body_inertia[3], long.body_inertia[3])
+
+
+def test_a_length_that_would_invert_the_segment_is_refused():
+    spec = load_family_file(HOPPER)
+    with pytest.raises(ValueError, match='would invert the segment'):
+        family_model(spec).compile((1.0, -0.1))
+    with pytest.raises(ValueError, match='outside the allowed range'):
+        make_env(spec.name, (1.0, 0.5)).prepare_values((1.0, 0.0))
+
+
+@pytest.mark.parametrize('edit, field, value', [
+    ({'kind': 'damping', 'joints': ['leg_joint']}, 'dof_damping', 2.5),
+    ({'kind': 'gear', 'actuators': ['leg_motor']}, 'actuator_gear', 150.0),
+    ({'kind': 'mass', 'body': 'foot'}, 'body_mass', 7.0),
+])
+def test_the_other_edit_kinds_set_their_field(tmp_path, edit, field, value):
+    doc = hopper_doc()
+    doc['name'] = f'hopper-{edit["kind"]}'
+    doc['parameters'][1] = {'name': 'p', 'edit': edit, 'default': value,
+                            'live_range': [0.5, 300.0], 'train': [value]}
+    xml = (HOPPER.parent / 'hopper.xml').read_text().replace(
+        'gear="200.0" joint="leg_joint"', 'gear="200.0" joint="leg_joint" name="leg_motor"')
+    path = written(tmp_path, doc)
+    (tmp_path / 'hopper.xml').write_text(xml)
+    model = family_model(load_family_file(path)).compile((1.0, value))
+    index = {'dof_damping': (4,), 'actuator_gear': (1, 0), 'body_mass': (4,)}[field]
+    assert getattr(model, field)[index] == pytest.approx(value)
+
+
+# -- bad input: one line naming the file and the field -----------------------------------
+def test_malformed_yaml_names_the_line(tmp_path):
+    message = refusal(written(tmp_path, 'name: x\nmodel: [unclosed\n'))
+    assert 'malformed YAML' in message and 'line' in message
+
+
+@pytest.mark.parametrize('where, path', [
+    (lambda d: d, 'colour'),
+    (lambda d: d['task'], 'task.colour'),
+    (lambda d: d['task']['reward'][0], 'task.reward[0].colour'),
+    (lambda d: d['parameters'][1]['edit'], 'parameters[1].edit.colour'),
+    (lambda d: d['task']['healthy'], 'task.healthy.colour'),
+])
+def test_an_unknown_field_is_named_at_any_level(tmp_path, where, path):
+    doc = hopper_doc()
+    where(doc)['colour'] = 'red'
+    assert refusal(written(tmp_path, doc)).endswith(f': {path}: unknown field')
+
+
+@pytest.mark.parametrize('change, path, reason', [
+    (lambda d: d['parameters'][1]['edit'].update(geom='shin'), 'parameters[1].edit.geom',
+     "no geom named 'shin'"),
+    (lambda d: d['parameters'][0]['edit'].update(all_geoms=False, geoms=['ground']),
+     'parameters[0].edit.geoms', "no geom named 'ground'"),
+    (lambda d: d['task']['healthy'].update(angle_joint='hip'), 'task.healthy.angle_joint',
+     "no joint named 'hip'"),
+    (lambda d: d['task']['reward'][0].update(body='pelvis'), 'task.reward[0].body',
+     "no body named 'pelvis'"),
+    (lambda d: d['observation'].update(joints=['rootz', 'knee']), 'observation.joints[1]',
+     "no joint named 'knee'"),
+    (lambda d: d['parameters'][1].update(train=[0.42, 0.9]), 'parameters[1].train',
+     '0.9 is outside live_range [0.25, 0.6]'),
+    (lambda d: d['parameters'][0]['train'].update(range=[0.01, 2.0]),
+     'parameters[0].train.range', 'inside live_range'),
+    (lambda d: d['parameters'][1].update(extrapolation=[0.34, 0.54]),
+     'parameters[1].extrapolation', '0.54 is a train value'),
+    (lambda d: d['parameters'][1].update(live_range=[-0.1, 0.6]), 'parameters[1].live_range',
+     'inverted'),
+    (lambda d: d['parameters'][1]['edit'].update(geom='floor'), 'parameters[1].edit.geom',
+     'not a capsule or cylinder'),
+    (lambda d: d['control'].update(period=0.005), 'control.period', 'multiple of'),
+    (lambda d: d['parameters'][1]['edit'].update(mass_rule='keep_volume'),
+     'parameters[1].edit.mass_rule', "'keep_density' or 'keep_mass'"),
+])
+def test_each_bad_value_is_one_line_naming_the_field(tmp_path, change, path, reason):
+    doc = hopper_doc()
+    change(doc)
+    message = refusal(written(tmp_path, doc))
+    assert f': {path}: ' in message and reason in message, message
+
+
+def test_a_model_mujoco_cannot_compile_is_quoted(tmp_path):
+    path = written(tmp_path, hopper_doc())
+    xml = (tmp_path / 'hopper.xml').read_text()
+    (tmp_path / 'hopper.xml').write_text(xml.replace('joint="foot_joint"', 'joint="ankle"'))
+    message = refusal(path)
+    assert ': model.mjcf: MuJoCo cannot compile the model: ' in message
+    assert 'ankle' in message       # MuJoCo's own words, on the same line
+
+
+def test_a_missing_model_file_is_named(tmp_path):
+    doc = hopper_doc()
+    doc['model']['mjcf'] = 'nowhere.xml'
+    message = refusal(written(tmp_path, doc))
+    assert ': model.mjcf: ' in message and 'nowhere.xml' in message
+
+
+def test_reading_alone_needs_no_model_checks():
+    """The MuJoCo-free half (what a checkpoint's metadata uses) reads the same file."""
+    spec = read_family_file(HOPPER)
+    assert spec.param_names == ('floor_friction', 'leg_length') and len(spec.sha256) == 64

@@ -1,0 +1,95 @@
+"""A family file through the tools (#48): train on the Hopper, report on it, the checkpoint.
+
+The Hopper (examples/hopper/, Gymnasium's MJCF) is trained a few hundred steps
+through `train --family-file`; the adaptation report then runs on the result
+in a fresh process, from a directory where the family file cannot be found:
+the checkpoint carries it.
+"""
+
+import json
+from pathlib import Path
+import subprocess
+import sys
+
+from conftest import REPO
+import pytest
+
+from zeus_ros.deploy.metadata import CheckpointMetadata, MetadataError
+
+pytestmark = pytest.mark.ros   # starts processes of its own
+
+HOPPER = REPO / 'examples' / 'hopper' / 'hopper.yaml'
+STEPS = 300
+
+
+@pytest.fixture(scope='module')
+def hopper_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp('hopper') / 'run'
+    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                    '--family-file', str(HOPPER), '--steps', str(STEPS), '--out', str(out),
+                    '--eval-every', '0', '--checkpoint-every', str(STEPS), '--quiet',
+                    '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
+                    'batch_size_per_task=4', 'replay_capacity=2000', 'context_length=5'],
+                   check=True, cwd=REPO, capture_output=True)
+    return out
+
+
+def metadata(run: Path) -> dict:
+    return json.loads((run / 'checkpoint' / 'metadata.json').read_text())
+
+
+def test_training_on_a_family_file_records_the_file_in_the_checkpoint(hopper_run):
+    meta = metadata(hopper_run)
+    recorded = meta['family_file']
+    assert meta['family'] == 'hopper-friction-leg' == meta['config']['family']
+    assert recorded['text'] == HOPPER.read_text()
+    assert recorded['model_xml'] == (HOPPER.parent / 'hopper.xml').read_text()
+    assert meta['param_names'] == ['floor_friction', 'leg_length']
+    assert meta['steps']['timestep'] == STEPS and meta['run']['family_file'] == str(HOPPER)
+    # Four train tasks (2 frictions x 2 lengths), each stepped once per timestep.
+    assert meta['steps']['env_steps'] == 4 * STEPS
+
+
+def test_a_tampered_family_file_in_a_checkpoint_is_refused(hopper_run):
+    meta = metadata(hopper_run)
+    meta['family_file']['text'] += '\n# edited after training\n'
+    with pytest.raises(MetadataError, match='^family_file.sha256: must be the sha256'):
+        CheckpointMetadata.parse(meta)
+
+
+def test_the_adaptation_report_runs_on_it_without_the_file(hopper_run, tmp_path):
+    report = tmp_path / 'report.json'
+    done = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.adaptation',
+                           '--weights', str(hopper_run), '--episodes', '1', '--max-steps', '40',
+                           '--swap-step', '20', '--swap-steps', '40', '--no-context-use-train',
+                           '--json', str(report)],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith('hopper-friction-leg zeus')
+    data = json.loads(report.read_text())
+    splits = {r['split'] for r in data['returns']}
+    assert splits == {'train', 'interpolation', 'extrapolation'}
+    assert set(data['identification']['r2_per_parameter']) == {'floor_friction', 'leg_length'}
+    assert data['swaps'], 'a live swap episode per held-out pair'
+
+
+def bad_file(tmp_path: Path) -> Path:
+    path = tmp_path / 'bad.yaml'
+    path.write_text(HOPPER.read_text().replace('geom: leg_geom', 'geom: shin_geom'))
+    (tmp_path / 'hopper.xml').write_text((HOPPER.parent / 'hopper.xml').read_text())
+    return path
+
+
+@pytest.mark.parametrize('tool, extra', [
+    ('zeus_ros.learning_tools.train', ['--out', 'never']),
+    ('zeus_ros.learning_tools.adaptation', ['--weights', 'never']),
+])
+def test_a_bad_family_file_exits_1_with_one_line_and_no_traceback(tmp_path, tool, extra):
+    path = bad_file(tmp_path)
+    done = subprocess.run([sys.executable, '-m', tool, '--family-file', str(path), *extra],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    assert 'Traceback' not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert f"{path}: parameters[1].edit.geom: the model has no geom named 'shin_geom'" \
+        in done.stderr
+    assert not (tmp_path / 'never').exists()

@@ -93,3 +93,18 @@ def test_a_bad_family_file_exits_1_with_one_line_and_no_traceback(tmp_path, tool
     assert f"{path}: parameters[1].edit.geom: the model has no geom named 'shin_geom'" \
         in done.stderr
     assert not (tmp_path / 'never').exists()
+
+
+def test_family_check_prints_what_a_controller_will_see(tmp_path):
+    done = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.family_check',
+                           str(HOPPER)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert '  parameter leg_length [m] (length): default 0.5, live range [0.25, 0.6]' \
+        in done.stdout
+    assert '  extrapolation: 4 tasks (0.2, 0.5), (2.8, 0.5), (1, 0.34), (1, 0.58)' in done.stdout
+    assert 'observation (12 values)' in done.stdout
+    bad = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.family_check',
+                          str(bad_file(tmp_path))], cwd=REPO, capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 1 and len(bad.stderr.strip().splitlines()) == 1
+    assert "parameters[1].edit.geom: the model has no geom named 'shin_geom'" in bad.stderr

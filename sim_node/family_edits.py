@@ -21,7 +21,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import functools
+import importlib
 from pathlib import Path
+import xml.etree.ElementTree as ElementTree
 
 import mujoco
 import numpy as np
@@ -35,10 +37,33 @@ from sim_node.structures import DOMAIN_STRUCTURES, DomainStructure
 _OBJ = mujoco.mjtObj
 
 
-def new_spec(model_xml: str, origin: str, low_res: bool = False) -> mujoco.MjSpec:
+def model_source(family: FileFamilySpec) -> tuple[str, dict, float | None]:
+    """Return the family's MJCF, the files it includes, and a total mass to scale to (or None).
+
+    A suite domain's MJCF is dm_control's. Its compiler's `settotalmass` is
+    deprecated in MuJoCo 3.x: it is taken out and done on the compiled model,
+    as the built-in families do (`sim_node.env`), so both compile the same model.
+    """
+    domain = family.document.model.suite
+    if domain is None:
+        return family.model_xml, {}, None
+    from dm_control import suite   # only a suite family needs dm_control
+    domains = sorted({d for d, _ in suite.ALL_TASKS})
+    if domain not in domains:
+        raise FamilyFileError(f'{family.origin}: model.suite: dm_control has no domain '
+                              f'{domain!r}; one of {", ".join(domains)}')
+    xml, assets = importlib.import_module(f'dm_control.suite.{domain}').get_model_and_assets()
+    root = ElementTree.fromstring(xml)
+    compiler = root.find('compiler')
+    total = compiler.attrib.pop('settotalmass', None) if compiler is not None else None
+    return (ElementTree.tostring(root, encoding='unicode'), assets,
+            None if total is None else float(total))
+
+
+def new_spec(model_xml: str, assets: dict, origin: str, low_res: bool = False) -> mujoco.MjSpec:
     """Parse the family's MJCF; `low_res`: builtin textures at 2x2 (a swap keeps the live ones)."""
     try:
-        spec = mujoco.MjSpec.from_string(model_xml)
+        spec = mujoco.MjSpec.from_string(model_xml, include=assets or None)
     except ValueError as error:
         raise FamilyFileError(f'{origin}: model.mjcf: MuJoCo cannot read it: '
                               f'{_one_line(error)}') from None
@@ -126,7 +151,10 @@ class FamilyModel:
     def __init__(self, family: FileFamilySpec):
         self.family = family
         self.origin = family.origin
-        self.base = self._compile(new_spec(family.model_xml, self.origin), 'model.mjcf')
+        self.xml, self.assets, self.total_mass = model_source(family)
+        self._model_field = 'model.mjcf' if family.document.model.mjcf else 'model.suite'
+        self.base = self._compile(self._new_spec(), self._model_field)
+        self._check_suite_task()
         self._check_names()
         self.segments = {p.name: self._checked_segment(i, p)
                          for i, p in enumerate(family.document.parameters)
@@ -137,15 +165,35 @@ class FamilyModel:
         self._check_period()
 
     # -- checks ---------------------------------------------------------------
+    def _new_spec(self, low_res: bool = False) -> mujoco.MjSpec:
+        return new_spec(self.xml, self.assets, self.origin, low_res)
+
+    def _check_suite_task(self) -> None:
+        task, domain = self.family.document.task.suite_task, self.family.document.model.suite
+        if task is None:
+            return
+        from dm_control import suite
+        tasks = sorted(t for d, t in suite.ALL_TASKS if d == domain)
+        if task not in tasks:
+            raise self._refuse('task.suite_task', f"dm_control's {domain} has no task {task!r}; "
+                                                  f'one of {", ".join(tasks)}')
+
     def _refuse(self, path: str, reason: str) -> FamilyFileError:
         return FamilyFileError(f'{self.origin}: {path}: {reason}')
 
     def _compile(self, spec: mujoco.MjSpec, path: str) -> mujoco.MjModel:
         try:
-            return spec.compile()
+            model = spec.compile()
         except ValueError as error:
             raise self._refuse(path, f'MuJoCo cannot compile the model: {_one_line(error)}') \
                 from None
+        self._scale_total_mass(model)
+        return model
+
+    def _scale_total_mass(self, model: mujoco.MjModel) -> None:
+        if self.total_mass is not None:
+            mujoco.mj_setTotalmass(model, self.total_mass)
+            mujoco.mj_setConst(model, mujoco.MjData(model))
 
     def _has(self, kind: mujoco.mjtObj, name: str) -> bool:
         return mujoco.mj_name2id(self.base, kind, name) >= 0
@@ -178,8 +226,7 @@ class FamilyModel:
                 raise self._refuse(path, f'the model has no {what} named {name!r}')
 
     def _spec_default(self, name: str) -> object:
-        spec = new_spec(self.family.model_xml, self.origin)
-        return spec.find_default(name)
+        return self._new_spec().find_default(name)
 
     def _checked_segment(self, index: int, param: Parameter) -> Segment:
         found = _segment(self.base, param.edit.geom)
@@ -194,8 +241,8 @@ class FamilyModel:
         if edit.geoms:
             return np.array([mujoco.mj_name2id(self.base, _OBJ.mjOBJ_GEOM, n)
                              for n in edit.geoms])
-        spec = new_spec(self.family.model_xml, self.origin)
-        ids = [i for i, g in enumerate(spec.geoms) if g.classname.name == edit.geom_class]
+        ids = [i for i, g in enumerate(self._new_spec().geoms)
+               if g.classname.name == edit.geom_class]
         return np.array(ids, dtype=int)
 
     def _check_period(self) -> None:
@@ -208,7 +255,7 @@ class FamilyModel:
     # -- building ---------------------------------------------------------------
     def edited_spec(self, values: tuple[float, ...], low_res: bool = False) -> mujoco.MjSpec:
         """Return a fresh spec with every parameter's edit made (ValueError: why not)."""
-        spec = new_spec(self.family.model_xml, self.origin, low_res)
+        spec = self._new_spec(low_res)
         for param, value in zip(self.family.document.parameters, values, strict=True):
             self._edit(spec, param, float(value))
         return spec
@@ -232,6 +279,7 @@ class FamilyModel:
     def compile(self, values: tuple[float, ...], low_res: bool = False) -> mujoco.MjModel:
         """Compile the model of `values` (in `param_names` order), masses as the mass rules say."""
         model = self.edited_spec(values, low_res).compile()
+        self._scale_total_mass(model)
         self._set_masses(model, values)
         return model
 

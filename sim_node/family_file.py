@@ -48,9 +48,10 @@ class _Strict(BaseModel):
 
 
 class ModelSource(_Strict):
-    """The robot: an MJCF file (relative to the family file)."""
+    """The robot: an MJCF file (relative to the family file) or a dm_control suite domain."""
 
-    mjcf: str
+    mjcf: str | None = None
+    suite: str | None = None     # 'cheetah', 'walker', ...: dm_control's MJCF and assets
 
 
 class ForwardSpeed(_Strict):
@@ -91,9 +92,10 @@ class HealthyRange(_Strict):
 
 
 class Task(_Strict):
-    """What the robot is rewarded for: a sum of weighted terms."""
+    """What the robot is rewarded for: a dm_control task by name, or a sum of weighted terms."""
 
-    reward: tuple[RewardTerm, ...] = Field(min_length=1)
+    suite_task: str | None = None   # a task of the model's suite domain ('run', 'walk')
+    reward: tuple[RewardTerm, ...] = ()
     healthy: HealthyRange | None = None
     reset_noise: float = Field(0.0, ge=0.0)   # uniform +- this on qpos and qvel at reset
 
@@ -288,7 +290,20 @@ def _split_problems(p: Parameter, where: str) -> Iterator[tuple[str, str]]:
                                        f'holds none')
 
 
+def _source_problems(doc: FamilyFile) -> Iterator[tuple[str, str]]:
+    model, task = doc.model, doc.task
+    if (model.mjcf is None) == (model.suite is None):
+        yield 'model', 'needs exactly one of mjcf (a file) and suite (a dm_control domain)'
+    if (task.suite_task is None) == (not task.reward):
+        yield 'task', 'needs exactly one of suite_task and reward (a list of terms)'
+    if task.suite_task is not None and model.suite is None:
+        yield 'task.suite_task', 'needs model.suite: a dm_control task runs on its own domain'
+    if task.suite_task is not None and task.healthy is not None:
+        yield 'task.healthy', 'goes with reward terms: a dm_control task ends its own episodes'
+
+
 def _document_problems(doc: FamilyFile) -> Iterator[tuple[str, str]]:
+    yield from _source_problems(doc)
     names = [p.name for p in doc.parameters]
     for i, p in enumerate(doc.parameters):
         where = f'parameters[{i}]'
@@ -313,7 +328,8 @@ class FileFamilySpec:
     """A family from a family file: answers `SimFamily`, built envs are `FileEnv`s.
 
     `text` is the file as read and `model_xml` the MJCF it names, so a
-    checkpoint that records both can rebuild the family without either path.
+    checkpoint that records both can rebuild the family without either path
+    (empty for a suite domain: dm_control ships that model).
     """
 
     document: FamilyFile
@@ -414,6 +430,10 @@ def read_family_file(path: str | Path) -> FileFamilySpec:
     except OSError as error:
         raise FamilyFileError(f'{path}: (file): cannot be read ({error.strerror})') from None
     doc = parse_document(text, str(path))
+    for field, reason in _source_problems(doc):   # before reading a file it may not name
+        raise FamilyFileError(f'{path}: {field}: {reason}')
+    if doc.model.mjcf is None:
+        return parse_family_text(text, '', str(path))
     model_path = path.parent / doc.model.mjcf
     try:
         model_xml = model_path.read_text()

@@ -16,9 +16,12 @@ copies it into the live model at a step boundary, MjData (the state) kept.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import importlib
 import math
 from typing import TYPE_CHECKING
 
+from dm_control import mujoco as dm_mujoco
+from dm_control.rl.control import PhysicsError
 import mujoco
 import numpy as np
 
@@ -55,6 +58,40 @@ class PhysicsView:
     data: mujoco.MjData
 
 
+class SuiteTask:
+    """A dm_control suite task on this env's model: its Physics wraps the same MjModel.
+
+    Stepping, resetting and the reward are dm_control's own calls, in the order
+    `sim_node.env.ParamEnv` makes them, so a family file naming a suite task
+    runs as the built-in family of that task does.
+    """
+
+    def __init__(self, domain: str, name: str, model: mujoco.MjModel,
+                 random: np.random.RandomState):
+        from dm_control import suite
+        from dm_control.mujoco import wrapper
+        self.task = suite.load(domain, name, task_kwargs={'random': random}).task
+        self.physics = _physics_class(domain).from_model(wrapper.MjModel(model))
+
+    def reset(self) -> None:  # noqa: D102
+        with self.physics.reset_context():
+            self.task.initialize_episode(self.physics)
+
+    def step(self, ctrl: np.ndarray, n_sub_steps: int) -> tuple[float, bool]:
+        """One control period; the reward and whether the task ended the episode."""
+        self.task.before_step(ctrl, self.physics)
+        self.physics.step(n_sub_steps)
+        self.task.after_step(self.physics)
+        ended = self.task.get_termination(self.physics) is not None
+        return float(self.task.get_reward(self.physics)), ended
+
+
+def _physics_class(domain: str) -> type:
+    # The domain's own Physics (cheetah's has speed()), which its tasks call.
+    return getattr(importlib.import_module(f'dm_control.suite.{domain}'), 'Physics',
+                   dm_mujoco.Physics)
+
+
 class FileEnv:
     """A family file's robot and task, its parameters swappable at a step boundary."""
 
@@ -67,8 +104,12 @@ class FileEnv:
         self.episode_steps = doc.control.horizon if episode_steps is None else episode_steps
         self.control_timestep = doc.control.period
         self._values = self._checked(spec.defaults if values is None else values)
+        self._random = np.random.RandomState(seed)
         self.model = self._builder.compile(self._values)
-        self.data = mujoco.MjData(self.model)
+        self._suite = None if doc.task.suite_task is None else \
+            SuiteTask(doc.model.suite, doc.task.suite_task, self.model, self._random)
+        self.data = mujoco.MjData(self.model) if self._suite is None else \
+            self._suite.physics.data.ptr
         self._structure = structure_of(self.model)
         self._writer = ModelWriter(self.model)
         self._n_sub_steps = round(self.control_timestep / self.model.opt.timestep)
@@ -81,7 +122,6 @@ class FileEnv:
         self._qvel = self.model.jnt_dofadr[ids]
         self.actuator_names = self._builder.structure().actuator_names
         self.default_camera = None
-        self._random = np.random.RandomState(seed)
         self._friction_only = [isinstance(p.edit, FrictionEdit) for p in doc.parameters]
         self._reset_physics()
 
@@ -116,6 +156,8 @@ class FileEnv:
 
     @property
     def physics(self) -> PhysicsView:  # noqa: D102
+        if self._suite is not None:
+            return self._suite.physics
         return PhysicsView(_ModelView(self.model), self.data)
 
     def joint_positions(self) -> np.ndarray:  # noqa: D102
@@ -138,6 +180,9 @@ class FileEnv:
     def _reset_physics(self) -> None:
         self.step_count = 0
         self._last_reward = 0.0
+        if self._suite is not None:
+            self._suite.reset()
+            return
         mujoco.mj_resetData(self.model, self.data)
         noise = self.spec.document.task.reset_noise
         self.data.qpos[:] += self._random.uniform(-noise, noise, self.model.nq)
@@ -149,20 +194,31 @@ class FileEnv:
         clean, reason = check_action(action, self.action_dim)
         if reason is not None:
             raise ValueError(reason)
-        self.data.ctrl[:] = self._scaled(clean)
-        before = self.data.xpos.copy()
-        mujoco.mj_step(self.model, self.data, self._n_sub_steps)
-        reward = self._last_reward = self._reward(before)
-        observation = self.observation()
-        if not (np.all(np.isfinite(observation)) and math.isfinite(reward)):
+        try:
+            reward, terminal = self._advance(self._scaled(clean))
+            observation = self.observation()
+            if not (np.all(np.isfinite(observation)) and math.isfinite(reward)):
+                raise PhysicsError('non-finite state or reward')
+        except PhysicsError as error:
             self._reset_physics()
             return StepResult(self.observation(), 0.0, False, True, applied_action=clean,
-                              instability='non-finite state or reward')
+                              instability=str(error))
+        self._last_reward = reward
+        observation = self.observation()
         self.step_count += 1
-        healthy = self.spec.document.task.healthy
-        terminal = healthy is not None and healthy.end_episode and not self._healthy()
         truncated = not terminal and self.step_count >= self.episode_steps
         return StepResult(observation, reward, terminal, truncated, applied_action=clean)
+
+    def _advance(self, ctrl: np.ndarray) -> tuple[float, bool]:
+        """Step one control period; return the reward and whether the episode ended."""
+        if self._suite is not None:
+            return self._suite.step(ctrl, self._n_sub_steps)
+        self.data.ctrl[:] = ctrl
+        before = self.data.xpos.copy()
+        mujoco.mj_step(self.model, self.data, self._n_sub_steps)
+        healthy = self.spec.document.task.healthy
+        return (self._reward(before),
+                healthy is not None and healthy.end_episode and not self._healthy())
 
     def _scaled(self, action: np.ndarray) -> np.ndarray:
         # [-1, 1] onto each limited actuator's control range; an unlimited one takes it as is.

@@ -220,3 +220,135 @@ def test_reading_alone_needs_no_model_checks():
     """The MuJoCo-free half (what a checkpoint's metadata uses) reads the same file."""
     spec = read_family_file(HOPPER)
     assert spec.param_names == ('floor_friction', 'leg_length') and len(spec.sha256) == 64
+
+
+# -- a dm_control suite domain and task by name ----------------------------------------
+SLIPPERY_CHEETAH = """
+name: cheetah-file-slippery
+model: {suite: cheetah}
+task: {suite_task: run}
+control: {period: 0.01, horizon: 1000}
+parameters:
+  - name: friction
+    edit: {kind: friction, all_geoms: true}
+    default: 0.15
+    live_range: [0.01, 3.0]
+    train: [0.05, 0.06, 0.07, 0.08, 0.25, 0.3, 0.35, 0.4]
+    interpolation: [0.12, 0.15, 0.18, 0.2]
+    extrapolation: [0.02, 0.03, 0.035, 0.04, 0.5, 0.6, 0.8, 1.0]
+"""
+
+
+def model_differences(a: mujoco.MjModel, b: mujoco.MjModel) -> list[str]:
+    return [name for name in dir(a) if not name.startswith(('_', 'tex_'))
+            and isinstance(getattr(a, name), np.ndarray)
+            and not np.array_equal(getattr(a, name), getattr(b, name))]
+
+
+def test_a_suite_task_by_name_runs_as_the_builtin_family_does(tmp_path):
+    """cheetah-run-slippery written as a file: the same model and, over a swap, the same steps."""
+    from sim_node.env import build_model
+    from sim_node.families import FAMILIES
+    path = tmp_path / 'cheetah.yaml'
+    path.write_text(SLIPPERY_CHEETAH)
+    spec = load_family_file(path)
+    builtin = FAMILIES['cheetah-run-slippery']
+    assert spec.train == tuple((v,) for v in builtin.train)
+    for value in (0.05, 0.6):
+        mine, theirs = family_model(spec).compile((value,), low_res=True), \
+            build_model(builtin, value)
+        # The built-in also gives the ground the cheetah class's torsional and rolling
+        # friction (0.1, 0.1 against MuJoCo's 0.005, 0.0001); at condim 3 they act on nothing.
+        assert model_differences(mine, theirs) == ['geom_friction']
+        assert np.array_equal(mine.geom_friction[:, 0], theirs.geom_friction[:, 0])
+        assert np.array_equal(mine.geom_friction[1:], theirs.geom_friction[1:])
+        assert mine.geom_condim[0] == 3
+    ours, builtins = make_env(spec.name, (0.3,), seed=4), make_env(builtin.name, (0.3,), seed=4)
+    assert np.array_equal(ours.reset(seed=7), builtins.reset(seed=7))
+    actions = np.random.default_rng(0).uniform(-1, 1, (200, 6))
+    for i, action in enumerate(actions):
+        if i == 100:
+            for env in (ours, builtins):
+                env.apply_prepared(env.prepare_values((0.05,)))
+        a, b = ours.step(action), builtins.step(action)
+        assert np.array_equal(a.observation, b.observation) and a.reward == b.reward, i
+
+
+@pytest.mark.parametrize('change, path, reason', [
+    ('model: {suite: cheetah}', 'model.suite', "no domain 'cheeta'"),
+    ('task: {suite_task: run}', 'task.suite_task', "no task 'sprint'"),
+])
+def test_an_unknown_suite_domain_or_task_is_named(tmp_path, change, path, reason):
+    text = SLIPPERY_CHEETAH.replace(change, change.replace('cheetah', 'cheeta')
+                                    .replace('run', 'sprint'))
+    (tmp_path / 'bad.yaml').write_text(text)
+    message = refusal(tmp_path / 'bad.yaml')
+    assert f': {path}: ' in message and reason in message, message
+
+
+def test_a_model_needs_one_source_and_a_task_one_kind(tmp_path):
+    both = SLIPPERY_CHEETAH.replace('model: {suite: cheetah}',
+                                    'model: {suite: cheetah, mjcf: hopper.xml}')
+    (tmp_path / 'both.yaml').write_text(both)
+    assert ': model: needs exactly one of mjcf' in refusal(tmp_path / 'both.yaml')
+    doc = hopper_doc()
+    doc['task']['suite_task'] = 'hop'
+    assert ': task: needs exactly one of suite_task and reward' in refusal(written(tmp_path, doc))
+
+
+# -- a length given by fromto, with sites and geoms at both ends -----------------------
+ARM = """<mujoco>
+  <worldbody>
+    <body name="upper">
+      <joint name="shoulder" type="hinge" axis="0 0 1"/>
+      <geom name="upper" type="capsule" fromto="0 0 0 0.3 0 0" size="0.02"/>
+      <site name="elbow_marker" pos="0.3 0 0.02"/>
+      <site name="shoulder_marker" pos="0.02 0 0"/>
+      <geom name="shoulder_cap" type="sphere" pos="0 0 0" size="0.03"/>
+      <geom name="elbow_cap" type="sphere" pos="0.3 0 0" size="0.025"/>
+      <body name="lower" pos="0.3 0 0">
+        <joint name="elbow" type="hinge" axis="0 0 1"/>
+        <geom name="lower" type="capsule" fromto="0 0 0 0.2 0 0" size="0.02"/>
+        <site name="tip" pos="0.2 0 0"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="shoulder"/><motor joint="elbow"/></actuator>
+</mujoco>"""
+
+ARM_FAMILY = """name: arm-upper-length
+model: {mjcf: arm.xml}
+task: {reward: [{term: control_cost, weight: 1.0}]}
+control: {period: 0.01, horizon: 100}
+parameters:
+  - name: upper_length
+    unit: m
+    edit: {kind: length, geom: upper, mass_rule: keep_mass}
+    default: 0.3
+    live_range: [0.05, 0.6]
+    train: [0.2, 0.4]
+"""
+
+
+def test_a_fromto_segment_moves_sites_geoms_and_bodies_at_its_free_end_only(tmp_path):
+    (tmp_path / 'arm.xml').write_text(ARM)
+    (tmp_path / 'arm.yaml').write_text(ARM_FAMILY)
+    family = family_model(load_family_file(tmp_path / 'arm.yaml'))
+    model = family.compile((0.45,))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+
+    def where(kind, name):
+        i = mujoco.mj_name2id(model, kind, name)
+        return {SITE: data.site_xpos, GEOM: data.geom_xpos, BODY: data.xpos}[kind][i]
+    assert np.allclose(where(BODY, 'lower'), [0.45, 0, 0])
+    assert np.allclose(where(SITE, 'tip'), [0.65, 0, 0])
+    assert np.allclose(where(SITE, 'elbow_marker'), [0.45, 0, 0.02])
+    assert np.allclose(where(GEOM, 'elbow_cap'), [0.45, 0, 0])
+    assert np.allclose(where(SITE, 'shoulder_marker'), [0.02, 0, 0])   # the fixed end's
+    assert np.allclose(where(GEOM, 'shoulder_cap'), [0, 0, 0])
+    upper = mujoco.mj_name2id(model, GEOM, 'upper')
+    assert model.geom_size[upper, 1] == pytest.approx(0.225)          # half of 0.45
+    assert model.body_mass[1] == pytest.approx(family.base.body_mass[1])   # keep_mass
+    with pytest.raises(ValueError, match='would invert the segment'):
+        family.compile((-0.2,))

@@ -13,8 +13,13 @@ import sys
 
 from conftest import REPO
 import pytest
+from sim_driver import (assert_same_rewards, collect, episode_rewards, LockstepDriver,
+                        start_node)
+from zeus_msgs.msg import StepInfo
 
+from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.deploy.metadata import CheckpointMetadata, MetadataError
+from zeus_ros.learning_tools.evaluate import run_episode
 
 pytestmark = pytest.mark.ros   # starts processes of its own
 
@@ -48,6 +53,11 @@ def test_training_on_a_family_file_records_the_file_in_the_checkpoint(hopper_run
     assert meta['steps']['timestep'] == STEPS and meta['run']['family_file'] == str(HOPPER)
     # Four train tasks (2 frictions x 2 lengths), each stepped once per timestep.
     assert meta['steps']['env_steps'] == 4 * STEPS
+
+
+def test_the_recorded_family_file_round_trips_through_the_schema(hopper_run):
+    meta = metadata(hopper_run)
+    assert CheckpointMetadata.parse(meta).to_dict() == meta
 
 
 def test_a_tampered_family_file_in_a_checkpoint_is_refused(hopper_run):
@@ -108,3 +118,21 @@ def test_family_check_prints_what_a_controller_will_see(tmp_path):
                          timeout=120)
     assert bad.returncode == 1 and len(bad.stderr.strip().splitlines()) == 1
     assert "parameters[1].edit.geom: the model has no geom named 'shin_geom'" in bad.stderr
+
+
+def test_the_trained_controllers_run_the_hopper_through_ros_bit_exactly(hopper_run, spawn,
+                                                                        ros_node):
+    """sim_node (family_file), context_node and policy_node: the in-process episode."""
+    weights = hopper_run / 'checkpoint'
+    model = InferenceModel.load(weights)
+    values, seed = (1.0, 0.58), 3          # an extrapolation length
+    expected = run_episode(model, model.family, values, seed)
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    start_node(spawn, 'sim_node', {'family_file': str(HOPPER), 'command_timeout': 5.0})
+    start_node(spawn, 'context_node', {'weights': weights})
+    start_node(spawn, 'policy_node', {'weights': weights, 'context_timeout': 5.0})
+    driver = LockstepDriver(ros_node)
+    driver.wait_ready()
+    rewards = episode_rewards(ros_node, driver, steps, seed, length=len(expected.rewards),
+                              params=dict(zip(model.param_names, values, strict=True)))
+    assert_same_rewards(rewards, expected.rewards)

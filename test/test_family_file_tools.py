@@ -136,3 +136,16 @@ def test_the_trained_controllers_run_the_hopper_through_ros_bit_exactly(hopper_r
     rewards = episode_rewards(ros_node, driver, steps, seed, length=len(expected.rewards),
                               params=dict(zip(model.param_names, values, strict=True)))
     assert_same_rewards(rewards, expected.rewards)
+
+
+def test_bringup_passes_the_family_file_to_the_sim_and_asks_for_it(hopper_run):
+    from zeus_ros.ros_tools.bringup import node_parameters, parse_args
+    weights = str(hopper_run / 'checkpoint')
+    params = node_parameters(parse_args(['--weights', weights, '--family-file', str(HOPPER),
+                                         '--param', 'leg_length=0.3']))
+    sim = params['sim_node']
+    assert sim['family_file'] == str(HOPPER.resolve()) and sim['leg_length'] == 0.3
+    assert sim['family'] == 'hopper-friction-leg'
+    with pytest.raises(SystemExit, match='trained on a family file .* give it with '
+                                         '--family-file'):
+        node_parameters(parse_args(['--weights', weights]))

@@ -36,6 +36,11 @@ from sim_node.families import check_param, LiveParam, SPLITS
 
 # A ROS parameter name: the sim node declares each one (letters, digits, underscores).
 ROS_NAME = r'^[A-Za-z][A-Za-z0-9_]*$'
+# The sim node's own parameters (and rclpy's): a family's parameter cannot take one of
+# these names (test_family_file_sim.py checks the list against what the node declares).
+RESERVED_NAMES = frozenset({'family', 'family_file', 'seed', 'mode', 'real_time_factor',
+                            'command_timeout', 'camera_rate', 'thread_priority', 'executor',
+                            'use_sim_time', 'start_type_description_service'})
 
 
 class FamilyFileError(ValueError):
@@ -309,6 +314,8 @@ def _document_problems(doc: FamilyFile) -> Iterator[tuple[str, str]]:
         where = f'parameters[{i}]'
         if names.index(p.name) != i:
             yield f'{where}.name', f'{p.name!r} is declared twice'
+        if p.name in RESERVED_NAMES:
+            yield f'{where}.name', f'{p.name!r} is a parameter of the sim node itself'
         yield from _range_problems(p, where)
         yield from _split_problems(p, where)
         if isinstance(p.edit, FrictionEdit):

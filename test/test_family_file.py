@@ -190,6 +190,12 @@ def test_an_unknown_field_is_named_at_any_level(tmp_path, where, path):
     (lambda d: d['parameters'][1]['edit'].update(geom='floor'), 'parameters[1].edit.geom',
      'not a capsule or cylinder'),
     (lambda d: d['control'].update(period=0.005), 'control.period', 'multiple of'),
+    (lambda d: d['parameters'][1].update(name='seed'), 'parameters[1].name',
+     'a parameter of the sim node itself'),
+    (lambda d: d['parameters'][1].update(name='floor_friction'), 'parameters[1].name',
+     'declared twice'),
+    (lambda d: d['parameters'][1].update(name='leg-length'), 'parameters[1].name',
+     'should match pattern'),
     (lambda d: d['parameters'][1]['edit'].update(mass_rule='keep_volume'),
      'parameters[1].edit.mass_rule', "'keep_density' or 'keep_mass'"),
 ])

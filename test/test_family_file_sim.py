@@ -44,6 +44,18 @@ def test_the_leg_length_swaps_live_and_the_state_carries_on(spawn, ros_node):
     assert list(info.param_values) == [0.3, 0.58]
 
 
+def test_no_family_parameter_can_take_a_name_the_sim_node_uses(spawn, ros_node):
+    from rcl_interfaces.srv import ListParameters
+    from zeus_ros.ros.util import call_service
+    from sim_node.family_file import RESERVED_NAMES
+    _, driver = start_sim(spawn, ros_node, family_file=str(HOPPER))
+    client = ros_node.create_client(ListParameters, '/sim_node/list_parameters')
+    answer = call_service(client, ListParameters.Request(),
+                          lambda done, seconds: spin_until(ros_node, done, seconds), 30.0)
+    declared = set(answer.result.names) - {'floor_friction', 'leg_length'}
+    assert declared == set(RESERVED_NAMES), declared ^ set(RESERVED_NAMES)
+
+
 def test_a_bad_family_file_stops_the_sim_with_one_line(tmp_path):
     bad = tmp_path / 'bad.yaml'
     bad.write_text(HOPPER.read_text().replace('mjcf: hopper.xml', 'mjcf: hopper.xml\n  urdf: x'))

@@ -207,6 +207,9 @@ class FamilyModel:
         for i, term in enumerate(doc.task.reward):
             if getattr(term, 'body', None) is not None:
                 yield f'task.reward[{i}].body', _OBJ.mjOBJ_BODY, term.body
+            for field in ('site', 'target_site'):
+                if getattr(term, field, None) is not None:
+                    yield f'task.reward[{i}].{field}', _OBJ.mjOBJ_SITE, getattr(term, field)
         healthy = doc.task.healthy
         if healthy is not None:
             yield 'task.healthy.body', _OBJ.mjOBJ_BODY, healthy.body

@@ -83,7 +83,17 @@ class ControlCost(_Strict):
     weight: float = 1e-3
 
 
-RewardTerm = Annotated[ForwardSpeed | Healthy | ControlCost, Field(discriminator='term')]
+class SiteDistance(_Strict):
+    """-weight * the distance between two sites (a fingertip and its target, say)."""
+
+    term: Literal['site_distance']
+    site: str
+    target_site: str
+    weight: float = 1.0
+
+
+RewardTerm = Annotated[ForwardSpeed | Healthy | ControlCost | SiteDistance,
+                       Field(discriminator='term')]
 
 
 class HealthyRange(_Strict):
@@ -208,7 +218,7 @@ class FamilyFile(_Strict):
 # 'geom'); a path in a message names fields only.
 _UNION_FIELDS = {'edit', 'reward'}
 _TAGS = {'friction', 'length', 'mass', 'damping', 'gear', 'forward_speed', 'healthy',
-         'control_cost'}
+         'control_cost', 'site_distance'}
 
 
 def field_path(loc: tuple) -> str:

@@ -26,7 +26,8 @@ import mujoco
 import numpy as np
 
 from sim_node.family_edits import family_model
-from sim_node.family_file import ControlCost, FileFamilySpec, ForwardSpeed, FrictionEdit, Healthy
+from sim_node.family_file import (ControlCost, FileFamilySpec, ForwardSpeed, FrictionEdit,
+                                  Healthy, SiteDistance)
 from sim_node.layout import check_action, StepResult
 from sim_node.model_copy import ModelWriter, structure_of
 
@@ -216,6 +217,9 @@ class FileEnv:
         self.data.ctrl[:] = ctrl
         before = self.data.xpos.copy()
         mujoco.mj_step(self.model, self.data, self._n_sub_steps)
+        # mj_step leaves positions (xpos, site_xpos) one substep behind qpos; the reward
+        # reads them at the state it is for. Kinematics only: the dynamics are untouched.
+        mujoco.mj_kinematics(self.model, self.data)
         healthy = self.spec.document.task.healthy
         return (self._reward(before),
                 healthy is not None and healthy.end_episode and not self._healthy())
@@ -239,6 +243,11 @@ class FileEnv:
                 total += term.weight * float(self._healthy())
             elif isinstance(term, ControlCost):
                 total -= term.weight * float(np.sum(np.square(self.data.ctrl)))
+            elif isinstance(term, SiteDistance):
+                a, b = (mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, name)
+                        for name in (term.site, term.target_site))
+                total -= term.weight * float(np.linalg.norm(self.data.site_xpos[a]
+                                                            - self.data.site_xpos[b]))
         return float(total)
 
     def _healthy(self) -> bool:

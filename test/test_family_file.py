@@ -358,3 +358,34 @@ def test_a_fromto_segment_moves_sites_geoms_and_bodies_at_its_free_end_only(tmp_
     assert model.body_mass[1] == pytest.approx(family.base.body_mass[1])   # keep_mass
     with pytest.raises(ValueError, match='would invert the segment'):
         family.compile((-0.2,))
+
+
+def test_the_resampling_rate_is_the_trainers_swap_probability_unless_overridden(tmp_path):
+    from zeus_ros.learning_tools.train import family_config
+    doc = hopper_doc()
+    doc['name'] = 'hopper-resampled'
+    doc['training']['resample_rate'] = 0.02
+    spec = load_family_file(written(tmp_path, doc))
+    assert family_config(spec.name).train_swap_prob == 0.02
+    assert family_config(spec.name, train_swap_prob=0.5).train_swap_prob == 0.5
+    assert family_config(spec.name).episode_steps == 1000
+    assert family_config(load_family_file(HOPPER).name).train_swap_prob == 0.0
+
+
+def test_a_site_distance_reward_reads_the_sites_where_the_length_puts_them(tmp_path):
+    (tmp_path / 'arm.xml').write_text(ARM.replace(
+        '<worldbody>', '<worldbody>\n    <site name="target" pos="0.5 0 0"/>'))
+    (tmp_path / 'arm.yaml').write_text(ARM_FAMILY.replace(
+        'name: arm-upper-length', 'name: arm-reach').replace(
+        '{reward: [{term: control_cost, weight: 1.0}]}',
+        '{reward: [{term: site_distance, site: tip, target_site: target, weight: 2.0}]}'))
+    env = make_env(load_family_file(tmp_path / 'arm.yaml').name, (0.3,), seed=0)
+    env.reset(seed=0)
+    assert env.step(np.zeros(2)).reward == pytest.approx(0.0, abs=1e-9)   # tip on target
+    env.set_values((0.45,))
+    assert env.step(np.zeros(2)).reward == pytest.approx(-2.0 * 0.15, abs=1e-9)
+    doc = yaml.safe_load((tmp_path / 'arm.yaml').read_text())
+    doc['task']['reward'][0]['target_site'] = 'goal'
+    (tmp_path / 'arm.yaml').write_text(yaml.safe_dump(doc))
+    assert ": task.reward[0].target_site: the model has no site named 'goal'" in \
+        refusal(tmp_path / 'arm.yaml')

@@ -154,6 +154,7 @@ class FamilyModel:
         self.xml, self.assets, self.total_mass = model_source(family)
         self._model_field = 'model.mjcf' if family.document.model.mjcf else 'model.suite'
         self.base = self._compile(self._new_spec(), self._model_field)
+        self._check_geom_order()
         self._check_suite_task()
         self._check_names()
         self.segments = {p.name: self._checked_segment(i, p)
@@ -167,6 +168,16 @@ class FamilyModel:
     # -- checks ---------------------------------------------------------------
     def _new_spec(self, low_res: bool = False) -> mujoco.MjSpec:
         return new_spec(self.xml, self.assets, self.origin, low_res)
+
+    def _check_geom_order(self) -> None:
+        # Friction edits address geoms by index, in the spec (a build) and in the model
+        # (a live write): the compiler keeps the spec's order, and this says so if not.
+        names = [g.name for g in self._new_spec().geoms]
+        compiled = [mujoco.mj_id2name(self.base, _OBJ.mjOBJ_GEOM, i) or ''
+                    for i in range(self.base.ngeom)]
+        if names != compiled:
+            raise self._refuse(self._model_field, 'its geoms compile in another order than '
+                                                  'they are declared: friction edits would miss')
 
     def _check_suite_task(self) -> None:
         task, domain = self.family.document.task.suite_task, self.family.document.model.suite

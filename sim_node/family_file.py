@@ -43,6 +43,11 @@ RESERVED_NAMES = frozenset({'family', 'family_file', 'seed', 'mode', 'real_time_
                             'use_sim_time', 'start_type_description_service'})
 
 
+# The trainer runs an env per train task and samples a batch from each: beyond this
+# many, one timestep is more environment steps than an update can use.
+MAX_TRAIN_TASKS = 64
+
+
 class FamilyFileError(ValueError):
     """A family file that cannot be used; the message is one line naming file and field."""
 
@@ -315,6 +320,8 @@ def _source_problems(doc: FamilyFile) -> Iterator[tuple[str, str]]:
         yield 'task.suite_task', 'needs model.suite: a dm_control task runs on its own domain'
     if task.suite_task is not None and task.healthy is not None:
         yield 'task.healthy', 'goes with reward terms: a dm_control task ends its own episodes'
+    if task.suite_task is not None and task.reset_noise:
+        yield 'task.reset_noise', 'goes with reward terms: a dm_control task draws its own starts'
 
 
 def _document_problems(doc: FamilyFile) -> Iterator[tuple[str, str]]:
@@ -335,6 +342,10 @@ def _document_problems(doc: FamilyFile) -> Iterator[tuple[str, str]]:
         if isinstance(p.edit, LengthEdit) and p.live_range[0] <= 0:
             yield f'{where}.live_range', (f'a length must stay above 0 (a segment of length '
                                           f'<= 0 is inverted), got low {p.live_range[0]:g}')
+    tasks = math.prod(len(train_values(p.train)) for p in doc.parameters)
+    if tasks > MAX_TRAIN_TASKS:
+        yield 'parameters', (f'{tasks} train tasks (every combination of the train values); '
+                             f'the trainer steps each every timestep: at most {MAX_TRAIN_TASKS}')
     healthy = doc.task.healthy
     if healthy is not None and (healthy.angle_joint is None) != (healthy.angle_range is None):
         yield 'task.healthy', 'angle_joint and angle_range go together'

@@ -190,6 +190,8 @@ def test_an_unknown_field_is_named_at_any_level(tmp_path, where, path):
     (lambda d: d['parameters'][1]['edit'].update(geom='floor'), 'parameters[1].edit.geom',
      'not a capsule or cylinder'),
     (lambda d: d['control'].update(period=0.005), 'control.period', 'multiple of'),
+    (lambda d: d['parameters'][1].update(train={'range': [0.3, 0.6], 'count': 40}),
+     'parameters', '80 train tasks'),
     (lambda d: d['parameters'][1].update(name='seed'), 'parameters[1].name',
      'a parameter of the sim node itself'),
     (lambda d: d['parameters'][1].update(name='floor_friction'), 'parameters[1].name',

@@ -89,25 +89,34 @@ class Segment:
     length: float
 
 
-def _segment(model: mujoco.MjModel, geom_name: str) -> Segment | str:
-    """Read a capsule/cylinder geom's segment off the compiled model, or say why it is none."""
+def _segment(model: mujoco.MjModel, geom_name: str, fromto: np.ndarray) -> Segment | str:
+    """Read a capsule/cylinder geom's segment, or say why it is none.
+
+    `fromto` is the spec's: where the MJCF gives the ends, they are taken as
+    written (the compiled pos and quat hold them only to rounding); otherwise
+    they come from the compiled centre, orientation and half-length.
+    """
     g = mujoco.mj_name2id(model, _OBJ.mjOBJ_GEOM, geom_name)
     if int(model.geom_type[g]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE),
                                        int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
         return f'geom {geom_name!r} is not a capsule or cylinder: it has no length to set'
     b = int(model.geom_bodyid[g])
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, model.geom_quat[g])
-    axis = mat.reshape(3, 3)[:, 2]
-    half = float(model.geom_size[g, 1])
-    ends = (model.geom_pos[g] - half * axis, model.geom_pos[g] + half * axis)
+    if not np.isnan(fromto[0]):
+        ends = (np.array(fromto[:3]), np.array(fromto[3:]))
+    else:
+        mat = np.zeros(9)
+        mujoco.mju_quat2Mat(mat, model.geom_quat[g])
+        half = float(model.geom_size[g, 1])
+        ends = (model.geom_pos[g] - half * mat.reshape(3, 3)[:, 2],
+                model.geom_pos[g] + half * mat.reshape(3, 3)[:, 2])
     # The fixed end is the one at the body's joint (the body's origin if it has none):
     # what hangs from the other end moves with the length.
     anchor = model.jnt_pos[model.body_jntadr[b]] if model.body_jntnum[b] else np.zeros(3)
     near = int(np.linalg.norm(ends[1] - anchor) < np.linalg.norm(ends[0] - anchor))
     fixed, free = ends[near], ends[1 - near]
+    length = float(np.linalg.norm(free - fixed))
     return Segment(geom_name, mujoco.mj_id2name(model, _OBJ.mjOBJ_BODY, b), fixed.copy(),
-                   (free - fixed) / (2 * half), 2 * half)
+                   (free - fixed) / length, length)
 
 
 def set_length(spec: mujoco.MjSpec, segment: Segment, length: float) -> None:
@@ -243,9 +252,16 @@ class FamilyModel:
         return self._new_spec().find_default(name)
 
     def _checked_segment(self, index: int, param: Parameter) -> Segment:
-        found = _segment(self.base, param.edit.geom)
+        geom = self._new_spec().geom(param.edit.geom)
+        found = _segment(self.base, param.edit.geom, np.asarray(geom.fromto))
         if isinstance(found, str):
             raise self._refuse(f'parameters[{index}].edit.geom', found)
+        if param.edit.mass_rule == 'keep_density' and not np.isnan(geom.mass):
+            # An explicit mass wins over the density: the mass would stay, not the density.
+            raise self._refuse(f'parameters[{index}].edit.mass_rule',
+                               f'geom {param.edit.geom!r} has an explicit mass '
+                               f'({geom.mass:g} kg), which a length does not change: '
+                               f'write keep_mass')
         return found
 
     def _friction_ids(self, param: Parameter) -> np.ndarray:

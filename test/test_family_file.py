@@ -282,6 +282,54 @@ def test_a_suite_task_by_name_runs_as_the_builtin_family_does(tmp_path):
         assert np.array_equal(a.observation, b.observation) and a.reward == b.reward, i
 
 
+CARTPOLE_LENGTH = """
+name: cartpole-file-length
+model: {suite: cartpole}
+task: {suite_task: swingup}
+control: {period: 0.01, horizon: 1000}
+parameters:
+  - name: pole_length
+    unit: m
+    edit: {kind: length, geom: pole_1, mass_rule: keep_mass}
+    default: 1.0
+    live_range: [0.2, 2.0]
+    train: [0.8, 0.85, 0.9, 0.95, 1.05, 1.1, 1.15, 1.2]
+    interpolation: [0.875, 0.975, 1.0, 1.125]
+    extrapolation: [0.3, 0.33, 0.36, 0.4, 1.6, 1.63, 1.66, 1.7]
+"""
+
+
+def test_cartpole_swingup_length_as_a_file_is_the_builtin_family_exactly(tmp_path):
+    """A built-in written as a file: for every split value its compiled model, field for field."""
+    from sim_node.env import build_model
+    from sim_node.families import FAMILIES
+    path = tmp_path / 'cartpole.yaml'
+    path.write_text(CARTPOLE_LENGTH)
+    spec = load_family_file(path)
+    builtin = FAMILIES['cartpole-swingup-length']
+    for split in ('train', 'interpolation', 'extrapolation'):
+        assert spec.split(split) == tuple((v,) for v in builtin.split(split))
+        for (value,) in spec.split(split):
+            assert model_differences(family_model(spec).compile((value,), low_res=True),
+                                     build_model(builtin, value)) == [], value
+    ours, builtins = make_env(spec.name, (1.0,), seed=2), make_env(builtin.name, (1.0,), seed=2)
+    assert np.array_equal(ours.reset(seed=5), builtins.reset(seed=5))
+    for i, action in enumerate(np.random.default_rng(1).uniform(-1, 1, (150, 1))):
+        if i == 50:
+            for env in (ours, builtins):
+                env.apply_prepared(env.prepare_values((1.66,)))
+        a, b = ours.step(action), builtins.step(action)
+        assert np.array_equal(a.observation, b.observation) and a.reward == b.reward, i
+
+
+def test_keep_density_on_a_geom_of_explicit_mass_is_refused(tmp_path):
+    path = tmp_path / 'cartpole.yaml'
+    path.write_text(CARTPOLE_LENGTH.replace('keep_mass', 'keep_density'))
+    message = refusal(path)
+    assert ": parameters[0].edit.mass_rule: geom 'pole_1' has an explicit mass (0.1 kg)" \
+        in message and 'write keep_mass' in message
+
+
 @pytest.mark.parametrize('change, path, reason', [
     ('model: {suite: cheetah}', 'model.suite', "no domain 'cheeta'"),
     ('task: {suite_task: run}', 'task.suite_task', "no task 'sprint'"),

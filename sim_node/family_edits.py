@@ -143,8 +143,14 @@ def set_length(spec: mujoco.MjSpec, segment: Segment, length: float) -> None:
         if past_middle(site.pos):
             site.pos = np.asarray(site.pos) + shift
     for geom in body.geoms:
-        if geom.name != segment.geom and past_middle(geom.pos):
-            geom.pos = np.asarray(geom.pos) + shift
+        if geom.name == segment.geom:
+            continue
+        ends = np.asarray(geom.fromto)
+        if np.isnan(ends[0]):
+            if past_middle(geom.pos):
+                geom.pos = np.asarray(geom.pos) + shift
+        elif past_middle((ends[:3] + ends[3:]) / 2):   # a geom given by its ends
+            geom.fromto = ends + np.concatenate([shift, shift])
     geom = spec.geom(segment.geom)
     geom.fromto = np.concatenate([segment.fixed, segment.fixed + length * segment.axis])
 

@@ -362,6 +362,7 @@ ARM = """<mujoco>
       <site name="shoulder_marker" pos="0.02 0 0"/>
       <geom name="shoulder_cap" type="sphere" pos="0 0 0" size="0.03"/>
       <geom name="elbow_cap" type="sphere" pos="0.3 0 0" size="0.025"/>
+      <geom name="elbow_guard" type="capsule" fromto="0.26 0 0 0.3 0 0" size="0.03"/>
       <body name="lower" pos="0.3 0 0">
         <joint name="elbow" type="hinge" axis="0 0 1"/>
         <geom name="lower" type="capsule" fromto="0 0 0 0.2 0 0" size="0.02"/>
@@ -401,6 +402,7 @@ def test_a_fromto_segment_moves_sites_geoms_and_bodies_at_its_free_end_only(tmp_
     assert np.allclose(where(SITE, 'tip'), [0.65, 0, 0])
     assert np.allclose(where(SITE, 'elbow_marker'), [0.45, 0, 0.02])
     assert np.allclose(where(GEOM, 'elbow_cap'), [0.45, 0, 0])
+    assert np.allclose(where(GEOM, 'elbow_guard'), [0.43, 0, 0])    # given by fromto
     assert np.allclose(where(SITE, 'shoulder_marker'), [0.02, 0, 0])   # the fixed end's
     assert np.allclose(where(GEOM, 'shoulder_cap'), [0, 0, 0])
     upper = mujoco.mj_name2id(model, GEOM, 'upper')

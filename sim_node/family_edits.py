@@ -50,8 +50,9 @@ def model_source(family: FileFamilySpec) -> tuple[str, dict, float | None]:
     from dm_control import suite   # only a suite family needs dm_control
     domains = sorted({d for d, _ in suite.ALL_TASKS})
     if domain not in domains:
-        raise FamilyFileError(f'{family.origin}: model.suite: dm_control has no domain '
-                              f'{domain!r}; one of {", ".join(domains)}')
+        raise FamilyFileError(family.origin, 'model.suite',
+                              f'dm_control has no domain {domain!r}; one of '
+                              f'{", ".join(domains)}')
     xml, assets = importlib.import_module(f'dm_control.suite.{domain}').get_model_and_assets()
     root = ElementTree.fromstring(xml)
     compiler = root.find('compiler')
@@ -65,7 +66,7 @@ def new_spec(model_xml: str, assets: dict, origin: str, low_res: bool = False) -
     try:
         spec = mujoco.MjSpec.from_string(model_xml, include=assets or None)
     except ValueError as error:
-        raise FamilyFileError(f'{origin}: model.mjcf: MuJoCo cannot read it: '
+        raise FamilyFileError(origin, 'model.mjcf', 'MuJoCo cannot read it: '
                               f'{_one_line(error)}') from None
     if low_res:
         for texture in spec.textures:
@@ -205,7 +206,7 @@ class FamilyModel:
                                                   f'one of {", ".join(tasks)}')
 
     def _refuse(self, path: str, reason: str) -> FamilyFileError:
-        return FamilyFileError(f'{self.origin}: {path}: {reason}')
+        return FamilyFileError(self.origin, path, reason)
 
     def _compile(self, spec: mujoco.MjSpec, path: str) -> mujoco.MjModel:
         try:
@@ -396,7 +397,7 @@ def register_checked(family: FileFamilySpec) -> FileFamilySpec:
     try:
         register_family(family, family.sha256)
     except ValueError as error:
-        raise FamilyFileError(f'{family.origin}: name: {error}') from None
+        raise FamilyFileError(family.origin, 'name', str(error)) from None
     return family
 
 

@@ -49,7 +49,14 @@ MAX_TRAIN_TASKS = 64
 
 
 class FamilyFileError(ValueError):
-    """A family file that cannot be used; the message is one line naming file and field."""
+    """A family file that cannot be used: the file, the field path and what was expected.
+
+    Its message is the one line every tool prints: ``<file>: <field>: <reason>``.
+    """
+
+    def __init__(self, origin: str, field: str, reason: str):
+        super().__init__(f'{origin}: {field}: {reason}')
+        self.origin, self.field, self.reason = origin, field, reason
 
 
 class _Strict(BaseModel):
@@ -239,11 +246,12 @@ def field_path(loc: tuple) -> str:
     return text or '(top level)'
 
 
-def _schema_message(error: ValidationError) -> str:
+def _schema_problem(error: ValidationError) -> tuple[str, str]:
+    """Return the first problem pydantic found: (field path, reason)."""
     first = error.errors()[0]
     reason = 'unknown field' if first['type'] == 'extra_forbidden' else first['msg']
     more = error.error_count() - 1
-    return f'{field_path(first["loc"])}: {reason}' + (f' (and {more} more)' if more else '')
+    return field_path(first['loc']), reason + (f' (and {more} more)' if more else '')
 
 
 def parse_document(text: str, origin: str) -> FamilyFile:
@@ -254,14 +262,14 @@ def parse_document(text: str, origin: str) -> FamilyFile:
         mark = getattr(error, 'problem_mark', None)
         where = f'line {mark.line + 1}' if mark is not None else 'YAML'
         problem = getattr(error, 'problem', None) or str(error).splitlines()[0]
-        raise FamilyFileError(f'{origin}: {where}: malformed YAML ({problem})') from None
+        raise FamilyFileError(origin, where, f'malformed YAML ({problem})') from None
     if not isinstance(raw, dict):
-        raise FamilyFileError(f'{origin}: (top level): must be a mapping of fields, '
-                              f'got {type(raw).__name__}')
+        raise FamilyFileError(origin, '(top level)',
+                              f'must be a mapping of fields, got {type(raw).__name__}')
     try:
         return FamilyFile.model_validate(raw)
     except ValidationError as error:
-        raise FamilyFileError(f'{origin}: {_schema_message(error)}') from None
+        raise FamilyFileError(origin, *_schema_problem(error)) from None
 
 
 def train_values(train: tuple[float, ...] | TrainRange) -> tuple[float, ...]:
@@ -446,7 +454,7 @@ def parse_family_text(text: str, model_xml: str, origin: str) -> FileFamilySpec:
     """Check a family file's text (and keep the model's) without reading anything else."""
     doc = parse_document(text, origin)
     for path, reason in _document_problems(doc):
-        raise FamilyFileError(f'{origin}: {path}: {reason}')
+        raise FamilyFileError(origin, path, reason)
     return FileFamilySpec(doc, text, model_xml, origin)
 
 
@@ -456,16 +464,17 @@ def read_family_file(path: str | Path) -> FileFamilySpec:
     try:
         text = path.read_text()
     except OSError as error:
-        raise FamilyFileError(f'{path}: (file): cannot be read ({error.strerror})') from None
+        raise FamilyFileError(str(path), '(file)', f'cannot be read ({error.strerror})') \
+            from None
     doc = parse_document(text, str(path))
     for field, reason in _source_problems(doc):   # before reading a file it may not name
-        raise FamilyFileError(f'{path}: {field}: {reason}')
+        raise FamilyFileError(str(path), field, reason)
     if doc.model.mjcf is None:
         return parse_family_text(text, '', str(path))
     model_path = path.parent / doc.model.mjcf
     try:
         model_xml = model_path.read_text()
     except OSError as error:
-        raise FamilyFileError(f'{path}: model.mjcf: {model_path} cannot be read '
+        raise FamilyFileError(str(path), 'model.mjcf', f'{model_path} cannot be read '
                               f'({error.strerror})') from None
     return parse_family_text(text, model_xml, str(path))

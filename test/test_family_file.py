@@ -34,8 +34,9 @@ def written(tmp_path: Path, doc: dict | str, name: str = 'robot.yaml') -> Path:
 def refusal(path: Path) -> str:
     with pytest.raises(FamilyFileError) as caught:
         load_family_file(path)
-    message = str(caught.value)
+    error, message = caught.value, str(caught.value)
     assert '\n' not in message and message.startswith(f'{path}: '), message
+    assert (error.origin, message) == (str(path), f'{path}: {error.field}: {error.reason}')
     return message
 
 

@@ -188,7 +188,8 @@ class FamilyModel:
     def _check_geom_order(self) -> None:
         # Friction edits address geoms by index, in the spec (a build) and in the model
         # (a live write): the compiler keeps the spec's order, and this says so if not.
-        names = [g.name for g in self._new_spec().geoms]
+        spec = self._new_spec()   # held: its elements are views into it
+        names = [g.name for g in spec.geoms]
         compiled = [mujoco.mj_id2name(self.base, _OBJ.mjOBJ_GEOM, i) or ''
                     for i in range(self.base.ngeom)]
         if names != compiled:
@@ -249,17 +250,19 @@ class FamilyModel:
     def _check_names(self) -> None:
         for path, kind, name in self._names_used():
             if kind == 'class':
-                if self._spec_default(name) is None:
+                if not self._spec_default(name):
                     raise self._refuse(path, f'the model has no default class {name!r}')
             elif not self._has(kind, name):
                 what = kind.name.removeprefix('mjOBJ_').lower()
                 raise self._refuse(path, f'the model has no {what} named {name!r}')
 
-    def _spec_default(self, name: str) -> object:
-        return self._new_spec().find_default(name)
+    def _spec_default(self, name: str) -> bool:
+        spec = self._new_spec()
+        return spec.find_default(name) is not None
 
     def _checked_segment(self, index: int, param: Parameter) -> Segment:
-        geom = self._new_spec().geom(param.edit.geom)
+        spec = self._new_spec()   # held while its geom is read (a view into it)
+        geom = spec.geom(param.edit.geom)
         found = _segment(self.base, param.edit.geom, np.asarray(geom.fromto))
         if isinstance(found, str):
             raise self._refuse(f'parameters[{index}].edit.geom', found)
@@ -278,8 +281,8 @@ class FamilyModel:
         if edit.geoms:
             return np.array([mujoco.mj_name2id(self.base, _OBJ.mjOBJ_GEOM, n)
                              for n in edit.geoms])
-        ids = [i for i, g in enumerate(self._new_spec().geoms)
-               if g.classname.name == edit.geom_class]
+        spec = self._new_spec()   # held: its geoms are views into it
+        ids = [i for i, g in enumerate(spec.geoms) if g.classname.name == edit.geom_class]
         return np.array(ids, dtype=int)
 
     def _check_period(self) -> None:

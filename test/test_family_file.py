@@ -442,3 +442,24 @@ def test_a_site_distance_reward_reads_the_sites_where_the_length_puts_them(tmp_p
     (tmp_path / 'arm.yaml').write_text(yaml.safe_dump(doc))
     assert ": task.reward[0].target_site: the model has no site named 'goal'" in \
         refusal(tmp_path / 'arm.yaml')
+
+
+def test_friction_by_class_sets_the_geoms_of_that_class_and_an_unknown_class_is_named(tmp_path):
+    xml = (HOPPER.parent / 'hopper.xml').read_text().replace(
+        '<motor ctrllimited="true" ctrlrange="-.4 .4"/>',
+        '<motor ctrllimited="true" ctrlrange="-.4 .4"/>\n    <default class="sole">'
+        '<geom friction="2.0"/></default>').replace(
+        'friction="2.0" pos="-0.065 0 0.1"', 'class="sole" pos="-0.065 0 0.1"')
+    doc = hopper_doc()
+    doc['name'] = 'hopper-sole'
+    doc['parameters'][0]['edit'] = {'kind': 'friction', 'geom_class': 'sole'}
+    path = written(tmp_path, doc)
+    (tmp_path / 'hopper.xml').write_text(xml)
+    model = family_model(load_family_file(path)).compile((0.3, 0.5))
+    foot = mujoco.mj_name2id(model, GEOM, 'foot_geom')
+    assert model.geom_friction[foot, 0] == 0.3
+    assert [f for i, f in enumerate(model.geom_friction[:, 0]) if i != foot] == \
+        [1.0, 0.9, 0.9, 0.9]        # the floor's and the other links' own
+    doc['parameters'][0]['edit']['geom_class'] = 'heel'
+    assert ": parameters[0].edit.geom_class: the model has no default class 'heel'" in \
+        refusal(written(tmp_path, doc, 'heel.yaml'))

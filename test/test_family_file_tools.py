@@ -6,6 +6,7 @@ in a fresh process, from a directory where the family file cannot be found:
 the checkpoint carries it.
 """
 
+import hashlib
 import json
 from pathlib import Path
 import subprocess
@@ -16,6 +17,8 @@ import pytest
 from sim_driver import (assert_same_rewards, collect, episode_rewards, LockstepDriver,
                         start_node)
 from zeus_msgs.msg import StepInfo
+
+from sim_node.families import SIM_FAMILIES
 
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.deploy.metadata import CheckpointMetadata, MetadataError
@@ -64,6 +67,17 @@ def test_a_tampered_family_file_in_a_checkpoint_is_refused(hopper_run):
     meta = metadata(hopper_run)
     meta['family_file']['text'] += '\n# edited after training\n'
     with pytest.raises(MetadataError, match='^family_file.sha256: must be the sha256'):
+        CheckpointMetadata.parse(meta)
+    # Consistent hash, another family's name: refused, and that name is not registered.
+    text = meta['family_file']['text'].replace('name: hopper-friction-leg', 'name: hopper-x')
+    meta['family_file'].update(text=text, sha256=hashlib.sha256(text.encode()).hexdigest())
+    with pytest.raises(MetadataError, match="^family_file.text: declares family 'hopper-x'"):
+        CheckpointMetadata.parse(meta)
+    assert 'hopper-x' not in SIM_FAMILIES
+    meta['family_file']['text'] = text.replace('parameters:', 'colour: red\nparameters:')
+    meta['family_file']['sha256'] = hashlib.sha256(
+        meta['family_file']['text'].encode()).hexdigest()
+    with pytest.raises(MetadataError, match='^family_file: family_file.text: colour: unknown'):
         CheckpointMetadata.parse(meta)
 
 

@@ -517,12 +517,16 @@ def _family_file_facts(meta: CheckpointMetadata):
            f'must be the sha256 of family_file.text ({digest}), got {recorded.sha256}')
     try:
         family = parse_family_text(recorded.text, recorded.model_xml, 'family_file.text')
-        register_family(family, family.sha256)
-    except (FamilyFileError, ValueError) as error:
+    except FamilyFileError as error:
         yield False, 'family_file', str(error)
         return
     yield (family.name == meta.family, 'family_file.text',
            f'declares family {family.name!r}, the checkpoint is of {meta.family!r}')
+    try:
+        register_family(family, family.sha256)
+    except ValueError as error:   # another file of that name is already loaded here
+        yield False, 'family_file', str(error)
+        return
     if family.domain not in DOMAIN_STRUCTURES:
         # In a process that never compiled the model (a controller), the robot is the one
         # the checkpoint describes; a sim node checks the real model (family_edits).

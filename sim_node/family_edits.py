@@ -351,7 +351,7 @@ class FamilyModel:
             [mujoco.mj_name2id(model, _OBJ.mjOBJ_JOINT, n) for n in joints]
         names, encodings = [], []
         for j in ids:
-            name = mujoco.mj_id2name(model, _OBJ.mjOBJ_JOINT, j)
+            name = mujoco.mj_id2name(model, _OBJ.mjOBJ_JOINT, j) or f'#{j} (unnamed)'
             kind = int(model.jnt_type[j])
             if kind not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
                 raise self._refuse('observation.joints', f'joint {name!r} is not a hinge or '

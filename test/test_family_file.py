@@ -463,3 +463,17 @@ def test_friction_by_class_sets_the_geoms_of_that_class_and_an_unknown_class_is_
     doc['parameters'][0]['edit']['geom_class'] = 'heel'
     assert ": parameters[0].edit.geom_class: the model has no default class 'heel'" in \
         refusal(written(tmp_path, doc, 'heel.yaml'))
+
+
+def test_a_free_joint_cannot_be_observed_and_the_file_says_so(tmp_path):
+    (tmp_path / 'arm.xml').write_text(ARM.replace(
+        '</worldbody>', '<body name="ball" pos="1 0 0"><freejoint/>'
+                        '<geom type="sphere" size=".05"/></body>\n  </worldbody>'))
+    (tmp_path / 'arm.yaml').write_text(ARM_FAMILY.replace('arm-upper-length', 'arm-ball'))
+    assert refusal(tmp_path / 'arm.yaml').endswith(
+        ": observation.joints: joint '#2 (unnamed)' is not a hinge or slide joint")
+    doc = yaml.safe_load(ARM_FAMILY.replace('arm-upper-length', 'arm-ball'))
+    doc['observation'] = {'joints': ['shoulder', 'elbow']}    # the arm's alone: fine
+    (tmp_path / 'arm.yaml').write_text(yaml.safe_dump(doc))
+    env = make_env(load_family_file(tmp_path / 'arm.yaml').name, (0.3,))
+    assert env.joint_names == ('shoulder', 'elbow') and env.obs_dim == 6

@@ -163,3 +163,13 @@ def test_bringup_passes_the_family_file_to_the_sim_and_asks_for_it(hopper_run):
     with pytest.raises(SystemExit, match='trained on a family file .* give it with '
                                          '--family-file'):
         node_parameters(parse_args(['--weights', weights]))
+
+
+def test_the_your_robot_page_shows_what_family_check_prints():
+    """The docs page quotes the command's output: it must stay what the command prints."""
+    done = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.family_check',
+                           'examples/hopper/hopper.yaml'], cwd=REPO, capture_output=True,
+                          text=True, timeout=120)
+    page = (REPO / 'docs' / 'pages' / 'your-robot.md').read_text()
+    assert '$ python -m zeus_ros.learning_tools.family_check examples/hopper/hopper.yaml' in page
+    assert [line for line in done.stdout.splitlines() if line not in page] == []

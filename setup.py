@@ -40,6 +40,7 @@ setup(
             'foxglove_view = zeus_ros.ros_tools.foxglove_view:main',
             'export_onnx = zeus_ros.learning_tools.export_onnx:main',
             'set_param = zeus_ros.ros_tools.set_param:main',
+            'family_check = zeus_ros.learning_tools.family_check:main',
         ],
     },
 )

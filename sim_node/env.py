@@ -37,6 +37,8 @@ import numpy as np
 from sim_node.families import (domain_model, FamilySpec, get_family, get_sim_family,
                                GOAL_FAMILIES, TARGET_ORBIT_RATE)
 from sim_node.family_env import FamilyEnv
+from sim_node.family_file import FileFamilySpec
+from sim_node.model_copy import ModelWriter as _ModelWriter, structure_of
 from sim_node.layout import check_action, DROPPED_JOINTS, ObservationLayout, StepResult
 
 if TYPE_CHECKING:
@@ -187,54 +189,6 @@ def _low_res_assets(domain: str) -> dict:
             content = ElementTree.tostring(root)
         low_res[name] = content
     return low_res
-
-
-class _ModelWriter:
-    """Writes a newly compiled model into a live one of the same structure, in place.
-
-    A swap could put a new Physics in force (what `ParamEnv.set_values` does),
-    but constructing one costs milliseconds of Python (dm_control's named
-    indexing) and leaves cyclic garbage behind. Every family's edit changes
-    values only (friction, sizes, positions, masses and what the compiler
-    derives from them), never the structure, so copying every array and the
-    `opt` and `stat` fields makes the live model equal to the new one, field
-    for field. The textures (`build_model` compiles them at 2x2) and `vis`
-    (rendering only, never edited) stay the live model's.
-    """
-
-    def __init__(self, live: mujoco.MjModel):
-        self.live = live
-        self.arrays = [name for name in dir(live) if not name.startswith(('_', 'tex_'))
-                       and isinstance(getattr(live, name), np.ndarray)]
-        self._targets = [getattr(live, name) for name in self.arrays]  # views, bound once
-        self.structs = {name: [field for field in dir(getattr(live, name))
-                               if not field.startswith('_')
-                               and not callable(getattr(getattr(live, name), field))]
-                        for name in ('opt', 'stat')}
-
-    def write(self, model: mujoco.MjModel) -> None:
-        """Copy `model` (of the same structure: `structure_of` equal) into the live model."""
-        for target, name in zip(self._targets, self.arrays, strict=True):
-            target[...] = getattr(model, name)
-        for struct, fields in self.structs.items():
-            source, target = getattr(model, struct), getattr(self.live, struct)
-            for field in fields:
-                value = getattr(source, field)
-                if isinstance(value, np.ndarray):
-                    getattr(target, field)[...] = value
-                else:
-                    setattr(target, field, value)
-
-
-def structure_of(model: mujoco.MjModel) -> dict:
-    """Return the model's sizes (nq, nbody, ngeom...): the same for every value of a family.
-
-    The two that count texture pixels and bytes in all (`build_model`'s
-    textures are smaller) are not part of it.
-    """
-    return {name: getattr(model, name) for name in dir(model)
-            if name.startswith('n') and name not in ('ntexdata', 'nbuffer')
-            and isinstance(getattr(model, name), int)}
 
 
 def layout_from_model(model: mujoco.MjModel) -> ObservationLayout:
@@ -457,7 +411,7 @@ def _copy_state(source: dm_mujoco.wrapper.MjData, physics: dm_mujoco.Physics) ->
 
 def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | None = 0,
              **options) -> FamilyEnv:
-    """Return the env of any family the sim node runs: a `ParamEnv`, or Sawyer-Peg-v0's own.
+    """Return the env of any family the sim node runs: `ParamEnv`, Sawyer-Peg-v0's, `FileEnv`.
 
     Both are a `FamilyEnv` (sim_node.family_env): what the trainer, the
     evaluator, the adaptation report and the sim node use of an env.
@@ -466,6 +420,9 @@ def make_env(family: str, values: tuple[float, ...] | None = None, seed: int | N
     observes the reward).
     """
     spec = get_sim_family(family)
+    if isinstance(spec, FileFamilySpec):
+        from sim_node.file_env import FileEnv   # MuJoCo only: no dm_control task
+        return FileEnv(spec, values, seed=seed, **options)
     if spec.name in GOAL_FAMILIES:
         from sim_node.sawyer import SawyerPegEnv   # the Sawyer scene loads for its family only
         if not options.pop('reward_in_obs', True):

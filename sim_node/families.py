@@ -591,3 +591,22 @@ def get_sim_family(name: str) -> SimFamily:
         return SIM_FAMILIES[name]
     except KeyError:
         raise ValueError(f'unknown family {name!r}; known: {", ".join(SIM_FAMILIES)}') from None
+
+
+def register_family(spec: SimFamily, fingerprint: str) -> None:
+    """Make a family from a family file known by name to every tool in this process.
+
+    `fingerprint` (the file's hash) tells a repeated registration of the same
+    file, which is harmless, from a second file claiming the same name, which
+    would make the name mean two robots: ValueError. A built-in's name cannot be taken.
+    """
+    if spec.name in FAMILIES or spec.name in GOAL_FAMILIES:
+        raise ValueError(f'{spec.name!r} is a built-in family; give the file another name')
+    known = _REGISTERED.get(spec.name)
+    if known is not None and known != fingerprint:
+        raise ValueError(f'a different family file named {spec.name!r} is already loaded')
+    _REGISTERED[spec.name] = fingerprint
+    SIM_FAMILIES[spec.name] = spec
+
+
+_REGISTERED: dict[str, str] = {}   # family-file families by name: their files' hashes

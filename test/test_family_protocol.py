@@ -4,14 +4,19 @@ import inspect
 import math
 from types import SimpleNamespace
 
+from conftest import REPO
 import pytest
 from sim_node.env import make_env
+from sim_node.family_edits import load_family_file
+from sim_node.family_file import FileFamilySpec
 from sim_node.families import (EPISODE_STEPS, FAMILIES, FamilySpec, GOAL_FAMILIES,
                                GoalFamilySpec, SIM_FAMILIES, SimFamily, values_with)
 from sim_node.family_env import EnvPhysics, FamilyEnv, PreparedValues
 
-# One family of each env class: ParamEnv (dm_control) and SawyerPegEnv.
-ENV_FAMILIES = ('walker-walk-v0', 'sawyer-peg-v0')
+# One family of each env class: ParamEnv (dm_control), SawyerPegEnv and FileEnv (a family
+# file's: the Hopper example, registered by the fixture).
+HOPPER_FILE = REPO / 'examples' / 'hopper' / 'hopper.yaml'
+ENV_FAMILIES = ('walker-walk-v0', 'sawyer-peg-v0', HOPPER_FILE)
 
 
 def protocol_members(protocol) -> set[str]:
@@ -34,7 +39,7 @@ def test_the_horizons_are_the_tasks_own():
     assert {spec.episode_steps for spec in GOAL_FAMILIES.values()} == {40}   # Table 9
 
 
-@pytest.mark.parametrize('spec_class', [FamilySpec, GoalFamilySpec])
+@pytest.mark.parametrize('spec_class', [FamilySpec, GoalFamilySpec, FileFamilySpec])
 def test_the_spec_methods_take_what_the_protocol_says(spec_class):
     for name in ('split', 'check_param'):
         wanted = list(inspect.signature(getattr(SimFamily, name)).parameters)
@@ -61,9 +66,12 @@ def test_values_with_makes_a_value_tuple_from_names_and_refuses_what_a_set_would
         values_with(walker, (0.7,), {'foot_length': 0.1})
 
 
-@pytest.fixture(scope='module', params=ENV_FAMILIES)
+@pytest.fixture(scope='module', params=ENV_FAMILIES, ids=str)
 def env(request):
-    return make_env(request.param)
+    family = request.param
+    if family == HOPPER_FILE:
+        family = load_family_file(HOPPER_FILE).name
+    return make_env(family)
 
 
 def test_every_env_class_is_a_family_env(env):

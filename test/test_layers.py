@@ -49,7 +49,8 @@ LAYERS = {
 # imports nothing of the project and nothing heavy.
 PACKAGE_ROOT = 'zeus_ros'
 # Simulation modules free of MuJoCo, which deployment and the plumbing may use.
-SIMULATION_PURE = ('sim_node.families', 'sim_node.layout', 'sim_node.structures')
+SIMULATION_PURE = ('sim_node.families', 'sim_node.family_file', 'sim_node.layout',
+                   'sim_node.structures')
 # The one plumbing module that reaches MuJoCo: the sim node's camera publisher draws
 # with the simulation's renderer. Only the sim node imports it (the controller
 # nodes' processes never load MuJoCo: test_controller_nodes_never_load_mujoco).

@@ -43,8 +43,8 @@ import torch
 
 from zeus_ros.core.config import ZeusConfig
 from zeus_ros.deploy.metadata import (ActionLayoutMeta, CheckpointMetadata, CONFIG_LIMITS,
-                                      ContextMeta, FileMeta, FORMAT_VERSION, LAYERS,
-                                      LOG_NORMALISATION, MetadataError, NORMALISATION,
+                                      ContextMeta, FamilyFileMeta, FileMeta, FORMAT_VERSION,
+                                      LAYERS, LOG_NORMALISATION, MetadataError, NORMALISATION,
                                       ObsLayoutMeta, ParamNormMeta, parse_section, RunMeta,
                                       StepsMeta, WIDTH)
 
@@ -169,7 +169,9 @@ def build_metadata(agent: Agent, env_info: dict, counters: dict, run: dict | Non
         config=cfg.to_dict(),
         steps=StepsMeta(**counters, wall_s=None if wall_s is None else round(wall_s, 2)),
         files={}, run=run_meta, seed=None if run_meta is None else run_meta.seed,
-        git_commit=git_commit(), created_unix=time.time())
+        git_commit=git_commit(), created_unix=time.time(),
+        family_file=None if 'family_file' not in env_info else
+        parse_section(FamilyFileMeta, env_info['family_file'], 'family_file.'))
 
 
 def write_metadata(directory: Path, meta: CheckpointMetadata) -> None:

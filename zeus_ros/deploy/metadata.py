@@ -26,6 +26,7 @@ the trainer writes floats there.)
 from __future__ import annotations
 
 from dataclasses import dataclass, Field, field, fields, is_dataclass, MISSING, replace
+import hashlib
 import json
 import math
 import re
@@ -33,9 +34,10 @@ import types
 import typing
 from typing import Annotated, Iterable, Sequence
 
-from sim_node.families import get_sim_family, LiveParam, SPLITS
+from sim_node.families import get_sim_family, LiveParam, register_family, SPLITS
+from sim_node.family_file import FamilyFileError, parse_family_text
 from sim_node.layout import ObservationLayout
-from sim_node.structures import DOMAIN_STRUCTURES
+from sim_node.structures import DOMAIN_STRUCTURES, DomainStructure
 from zeus_ros.core.config import config_types, SHARED_KEYS, ZeusConfig
 from zeus_ros.core.methods import METHODS
 
@@ -216,6 +218,7 @@ class RunMeta(Section):
 
     out: str = ''
     family: str | None = None
+    family_file: str | None = None
     method: str | None = None
     profile: str | None = None
     steps: Annotated[int, Between(1, COUNT)] | None = None
@@ -231,6 +234,20 @@ class RunMeta(Section):
     save_replay: bool = True
     resume: bool = False
     quiet: bool = False
+
+
+@dataclass(frozen=True)
+class FamilyFileMeta(Section):
+    """The family file the weights were trained on, and its model: both texts, whole.
+
+    A checkpoint carries them so that it loads, and its family is known by name,
+    without the files (sim_node.family_file). `path` is where the file was: provenance.
+    """
+
+    path: str
+    sha256: Annotated[str, Matches('[0-9a-f]{64}', '64 lowercase hex digits')]
+    text: str
+    model_xml: str
 
 
 @dataclass(frozen=True)
@@ -255,6 +272,8 @@ class CheckpointMetadata(Section):
     replay_saved: bool = False
     # Written for a family of several parameters only.
     param_names: tuple[str, ...] = field(default=(), metadata=WRITTEN_IF_SET)
+    # Written for a family from a family file only (checkpoints before #48 have none).
+    family_file: FamilyFileMeta | None = field(default=None, metadata=WRITTEN_IF_SET)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -266,6 +285,7 @@ class CheckpointMetadata(Section):
         """Check `raw` (the JSON object) against the schema; MetadataError names the field."""
         meta = parse_section(cls, raw)
         _check_config(meta.config)
+        _check(_family_file_facts(meta))
         _check(_family_facts(meta))
         _check(_consistency(meta))
         _check([(meta.format_version == FORMAT_VERSION, 'format_version',
@@ -492,6 +512,35 @@ def _check(checks: Iterable[tuple[bool, str, str]]) -> None:
     for ok, name, reason in checks:
         if not ok:
             raise MetadataError(f'{name}: {reason}')
+
+
+def _family_file_facts(meta: CheckpointMetadata):
+    """Check a recorded family file (hash, schema, name), then make it known by that name."""
+    recorded = meta.family_file
+    if recorded is None:
+        return
+    digest = hashlib.sha256(recorded.text.encode()).hexdigest()
+    yield (digest == recorded.sha256, 'family_file.sha256',
+           f'must be the sha256 of family_file.text ({digest}), got {recorded.sha256}')
+    try:
+        family = parse_family_text(recorded.text, recorded.model_xml, 'family_file.text')
+    except FamilyFileError as error:
+        yield False, 'family_file', str(error)
+        return
+    yield (family.name == meta.family, 'family_file.text',
+           f'declares family {family.name!r}, the checkpoint is of {meta.family!r}')
+    try:
+        register_family(family, family.sha256)
+    except ValueError as error:   # another file of that name is already loaded here
+        yield False, 'family_file', str(error)
+        return
+    if family.domain not in DOMAIN_STRUCTURES:
+        # In a process that never compiled the model (a controller), the robot is the one
+        # the checkpoint describes; a sim node checks the real model (family_edits).
+        DOMAIN_STRUCTURES[family.domain] = DomainStructure(
+            meta.obs_layout.joint_names, meta.obs_layout.position_encoding,
+            meta.obs_layout.velocity_encoding, meta.action_layout.actuator_names,
+            meta.control_timestep or family.document.control.period)
 
 
 def _family_facts(meta: CheckpointMetadata):

@@ -52,6 +52,8 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from sim_node.env import make_env
+from sim_node.family_edits import load_family_file
+from sim_node.family_file import FamilyFileError
 from sim_node.families import as_values, format_task, get_sim_family, SimFamily, Task
 from sim_node.family_env import FamilyEnv
 from sim_node.layout import StepResult
@@ -516,6 +518,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='adaptation_report', description=__doc__.split('\n')[0])
     p.add_argument('--weights', required=True, help='checkpoint dir or run dir')
     p.add_argument('--json', type=Path, default=None, help='write the report here')
+    p.add_argument('--family-file', type=Path, default=None,
+                   help="the checkpoint's family file: checked to be the one it recorded "
+                        '(not needed: a checkpoint carries its family file)')
     defaults = ReportConfig()
     for name, f in ReportConfig.__dataclass_fields__.items():
         flag, default = f'--{name.replace("_", "-")}', getattr(defaults, name)
@@ -527,7 +532,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     cfg = ReportConfig(**{n: getattr(args, n) for n in ReportConfig.__dataclass_fields__})
     try:
+        if args.family_file is not None:
+            load_family_file(args.family_file)   # a different file of the same name: refused
         report = build_report(args.weights, cfg)
+    except FamilyFileError as error:
+        print(f'adaptation_report: {error}', file=sys.stderr)
+        return 1
     except CheckpointError as error:
         print(f'cannot load weights: {error}', file=sys.stderr)
         return 2

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 import os
 from pathlib import Path
 import signal
@@ -40,6 +40,8 @@ from tqdm import tqdm
 from sim_node.env import make_env
 from sim_node.families import (as_values, format_task, get_sim_family, SIM_FAMILIES,
                                SPLITS)
+from sim_node.family_edits import load_family_file
+from sim_node.family_file import FamilyFileError, FileFamilySpec
 from sim_node.family_env import FamilyEnv
 from zeus_ros.deploy.checkpoint import (CheckpointError, load_training_checkpoint,
                                  numpy_generator_state, restore_numpy_generator,
@@ -65,13 +67,18 @@ RUN_COLUMNS = ('timestep', 'env_steps', 'wall_s', 'env_steps_per_s')
 
 def env_info(env: FamilyEnv) -> dict:
     """Describe the environment layout for the checkpoint metadata (any family's env)."""
-    return {'param_name': ', '.join(env.param_names), 'param_names': env.param_names,
+    info = {'param_name': ', '.join(env.param_names), 'param_names': env.param_names,
             'joint_names': env.layout.joint_names,
             'position_encoding': env.layout.position_encoding,
             'actuator_names': env.actuator_names, 'train_values': env.spec.train,
             'control_timestep': env.control_timestep,
             'reward_in_observation': env.layout.reward_in_observation,
             'velocity_encoding': env.layout.velocity_encoding}
+    if isinstance(env.spec, FileFamilySpec):
+        # The file and its model travel with the weights: a checkpoint loads without them.
+        info['family_file'] = {'path': env.spec.origin, 'sha256': env.spec.sha256,
+                               'text': env.spec.text, 'model_xml': env.spec.model_xml}
+    return info
 
 
 def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
@@ -79,6 +86,8 @@ def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',
     """Build the preset with the family's facts (Table 11's alpha_psi, reward-varying)."""
     spec = get_sim_family(family)
     overrides = {'episode_steps': spec.episode_steps, **overrides}   # Sawyer: Table 9's 40
+    if isinstance(spec, FileFamilySpec) and spec.document.training.resample_rate > 0:
+        overrides = {'train_swap_prob': spec.document.training.resample_rate, **overrides}
     return make_config(family, profile, method, family_alpha_psi=spec.alpha_psi,
                        reward_varying=spec.reward_varies_only, **overrides)
 
@@ -181,6 +190,8 @@ class RunArgs:
     out: Path = setting(help_text='Run directory (checkpoint/, logs, tb/).', required=True)
     family: str = setting('walker-walk-v0', 'Environment family (sim_node.families).',
                           choices=sorted(SIM_FAMILIES))
+    family_file: str | None = setting(
+        None, 'A family file (YAML, docs: "Your robot") to train on; its name replaces --family.')
     method: str = setting('zeus', 'Context method (one module each in zeus_ros/core/methods).',
                           choices=sorted(METHODS))
     profile: str = setting('cpu', "Preset sizes: 'cpu' (2 CPU cores) or 'paper' (Tables 8-9).",
@@ -271,6 +282,8 @@ class Trainer:
     """State of one training run: envs, windows, agent, replay, logs."""
 
     def __init__(self, args: RunArgs):
+        if args.family_file is not None:
+            args = replace(args, family=load_family_file(args.family_file).name)
         self.args = args
         self.cfg = cfg = family_config(args.family, args.profile, args.method, **args.overrides)
         torch.set_num_threads(cfg.num_threads)
@@ -556,6 +569,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
         args = RunArgs.from_cli(parser.parse_args(argv))
+    except ValueError as error:
+        parser.error(str(error))   # one line and the usage, exit status 2
+    if args.family_file is not None:
+        try:
+            args = replace(args, family=load_family_file(args.family_file).name)
+        except FamilyFileError as error:
+            print(f'train: {error}', file=sys.stderr)   # one line: the file and the field
+            return 1
+    try:
         family_config(args.family, args.profile, args.method, **args.overrides)
     except ValueError as error:
         parser.error(str(error))   # one line and the usage, exit status 2

@@ -59,7 +59,8 @@ from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
 
 from sim_node.env import make_env
-from sim_node.families import get_sim_family, SIM_FAMILIES
+from sim_node.families import get_sim_family, SIM_FAMILIES, SimFamily
+from sim_node.family_edits import load_family_file
 from sim_node.stepper import MODES, PublishedState, SimStepper, StepOutcome
 from sim_node.swaps import format_values, SwapQueue
 from zeus_ros.ros.camera import CameraPublisher
@@ -156,11 +157,25 @@ class SimNode(Node):
         super().destroy_node()
 
     # -- parameters -----------------------------------------------------------
+    def _declare_family(self) -> SimFamily:
+        """Return the family: a built-in by name, or the one a family file declares."""
+        path = self.declare_parameter('family_file', '', _describe(
+            'A family file (YAML; docs: "Your robot") to run instead of a built-in family '
+            "(read-only; empty: none). Its parameters become this node's live parameters.",
+            read_only=True)).value
+        from_file = load_family_file(path) if path else None   # FamilyFileError: one line
+        name = self.declare_parameter(
+            'family', from_file.name if from_file else 'walker-walk-v0', _describe(
+                f'Environment family (read-only): one of {", ".join(SIM_FAMILIES)}, or the '
+                'name of the family file given as family_file.', read_only=True)).value
+        if from_file is not None and name != from_file.name:
+            raise ValueError(f'parameter family: {name!r}, but family_file {path} declares '
+                             f'{from_file.name!r}; give one of them')
+        return get_sim_family(name)
+
     def _declare_parameters(self) -> None:
         """Declare every parameter and check what start-up gave, before anything runs."""
-        self.spec = get_sim_family(self.declare_parameter('family', 'walker-walk-v0', _describe(
-            f'Environment family (read-only): one of {", ".join(SIM_FAMILIES)}.',
-            read_only=True)).value)
+        self.spec = self._declare_family()
         self.live_names = self.spec.param_names
         self.declare_parameter('seed', 0, _describe(
             'Seed of the random stream of initial states; a new value restarts the stream '

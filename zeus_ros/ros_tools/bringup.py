@@ -31,6 +31,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--weights', required=True, help='checkpoint directory')
     parser.add_argument('--family', help="environment family (default: the weights')")
+    parser.add_argument('--family-file', help='the family file (YAML) to simulate; needed '
+                                              'for weights trained on one')
     parser.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep')
     parser.add_argument('--seed', type=int, default=0, help='sim seed')
     parser.add_argument('--param', action='append', default=[], metavar='[NAME=]VALUE',
@@ -59,10 +61,17 @@ def node_parameters(args: argparse.Namespace) -> dict[str, dict]:
     # Checked here, so that bad weights give one clear line, not three node failures.
     from zeus_ros.deploy.checkpoint import load_metadata
     weights = str(Path(args.weights).resolve())
-    family = args.family or load_metadata(weights).family
+    meta = load_metadata(weights)
+    family = args.family or meta.family
     sim_params = {'family': family, 'mode': args.mode, 'seed': args.seed,
                   'real_time_factor': args.real_time_factor,
                   'command_timeout': args.command_timeout}
+    if args.family_file is not None:
+        sim_params['family_file'] = str(Path(args.family_file).resolve())
+    elif meta.family_file is not None:
+        # The sim builds the model from a file; the checkpoint holds its text, not a path.
+        raise SystemExit(f'the weights were trained on a family file ({meta.family_file.path}):'
+                         ' give it with --family-file')
     sim_params.update(initial_values(family, args.param))
     controller = {'weights': weights, 'backend': args.backend}
     params = {'sim_node': sim_params, 'context_node': controller,

@@ -71,7 +71,9 @@ def env_info(env: FamilyEnv) -> dict:
             'actuator_names': env.actuator_names, 'train_values': env.spec.train,
             'control_timestep': env.control_timestep,
             'reward_in_observation': env.layout.reward_in_observation,
-            'velocity_encoding': env.layout.velocity_encoding}
+            'velocity_encoding': env.layout.velocity_encoding,
+            # Control range and gear of a MuJoCo motor env (the joint units of a command).
+            'actuator_units': getattr(env, 'actuator_units', None)}
 
 
 def family_config(family: str, profile: str = 'cpu', method: str = 'zeus',

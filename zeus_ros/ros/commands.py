@@ -125,7 +125,7 @@ class CommandCodec:
         return [float(values[i]) for i in self.order]
 
     def decode(self, values: Sequence[float]) -> tuple[np.ndarray | None, str | None]:
-        """Return (normalised action clipped to [-1, 1], None) of a command's values, or (None, why)."""
+        """Return a command's values as (normalised action in [-1, 1], None), or (None, why)."""
         if len(values) != len(self.order):
             return None, f'{len(values)} values for the {len(self.order)} joints'
         array = np.empty(len(self.order))

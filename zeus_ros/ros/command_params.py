@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
@@ -98,7 +99,11 @@ def command_port(node: Node, actuator_names: Sequence[str],
     out or names an unknown one, or actuator units the model does not record.
     """
     command_type = node.get_parameter('command_type').value
-    joints = node.get_parameter('joints').value or []
+    # Declared without a value (rclpy cannot type an empty list): unset is the default.
+    try:
+        joints = node.get_parameter('joints').value or []
+    except ParameterUninitializedException:
+        joints = []
     choose(command_type, COMMAND_TYPES, 'command_type')
     codec = make_codec(actuator_names, list(joints),
                        node.get_parameter('command_units').value, units)

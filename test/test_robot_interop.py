@@ -8,12 +8,14 @@ with today's StepInfo loop.
 
 from __future__ import annotations
 
+import json
+
 from conftest import REPO, spin_until
 import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
 from sim_driver import collect, start_node
-from std_msgs.msg import Float32MultiArray
+from std_msgs.msg import Float32MultiArray, Float64MultiArray
 from zeus_msgs.msg import Context, StepInfo
 from zeus_msgs.srv import Reset
 from zeus_ros.ros.util import reset_episode, stamp_ns
@@ -107,3 +109,61 @@ def test_the_window_without_step_info_is_the_step_info_window(spawn, ros_node):
         assert ref_ctx.window_fill == ctx.window_fill == K
         compared += 1
     assert compared >= STEPS // 2, f'only {compared} windows compared'
+
+
+GEARS = (120.0, 90.0, 60.0, 90.0, 60.0, 30.0)     # the cheetah's actuators, model order
+ACTUATORS = ('bthigh', 'bshin', 'bfoot', 'fthigh', 'fshin', 'ffoot')
+REVERSED = list(reversed(ACTUATORS))
+
+
+def with_units(source, folder):
+    """Return a copy of a checkpoint from before #49 with its actuators' units recorded."""
+    folder.mkdir()
+    for name in ('model.safetensors', 'training_state.safetensors'):
+        (folder / name).symlink_to(source / name)
+    meta = json.loads((source / 'metadata.json').read_text())
+    meta['action_layout'].update(ctrl_low=[-1.0] * 6, ctrl_high=[1.0] * 6, gear=list(GEARS))
+    (folder / 'metadata.json').write_text(json.dumps(meta, indent=2, sort_keys=True))
+    return folder
+
+
+def _array(joints: list[str]) -> str:
+    return '[' + ','.join(f"'{j}'" for j in joints) + ']'
+
+
+def test_float64_array_efforts_in_joint_units_drive_the_sim(spawn, ros_node, tmp_path):
+    """The policy commands as a forward_effort_controller takes it; the sim applies it as sent."""
+    weights = with_units(SAC, tmp_path / 'sac-units')
+    steps = collect(ros_node, StepInfo, '/zeus/step')
+    commands = collect(ros_node, Float64MultiArray, '/forward_effort_controller/commands')
+    port = {'command_type': 'float64_array', 'command_units': 'actuator',
+            'joints': _array(REVERSED)}
+    procs = [start_node(spawn, 'sim_node', {'family': FAMILY, 'command_timeout': 5.0, **port}),
+             start_node(spawn, 'context_node', {'weights': weights}),
+             start_node(spawn, 'policy_node', {'weights': weights, 'context_timeout': 5.0,
+                                               **port})]
+    assert spin_until(ros_node, lambda: len(commands) > 100 and len(steps) > 100, 120.0), \
+        '\n'.join(p.output()[-1500:] for p in procs)
+    sent = [np.asarray(c.data)[::-1] / np.asarray(GEARS) for c in commands]  # model order
+    assert max(np.max(np.abs(c.data)) for c in commands) > 1.0, 'not in joint units'
+    applied = [np.asarray(s.applied_action) for s in steps[-40:] if s.step > 0]
+    for action in applied:
+        assert any(np.allclose(action, a, rtol=1e-12, atol=1e-15) for a in sent), action
+    assert any(np.any(a != 0) for a in applied), 'only zero actions applied'
+
+
+@pytest.mark.parametrize('node, params, words', [
+    ('policy_node', {'weights': SAC, 'joints': _array(ACTUATORS[:5])}, "left out ['ffoot']"),
+    ('policy_node', {'weights': SAC, 'joints': _array([*ACTUATORS, 'tail'])}, "unknown ['tail']"),
+    ('sim_node', {'family': FAMILY, 'joints': _array(ACTUATORS[1:])}, "left out ['bthigh']"),
+    ('policy_node', {'weights': SAC, 'command_type': 'float64_array',
+                     'command_units': 'actuator'}, 'records no control range and gear'),
+    ('context_node', {'weights': RMA, 'action_source': 'commands'},
+     'rma reads the reward in its window rows'),
+])
+def test_a_misfit_command_interface_is_refused_at_start_up(spawn, node, params, words):
+    proc = start_node(spawn, node, params)
+    assert proc.proc.wait(120) == 1
+    out = proc.output()
+    assert words in out and 'Traceback' not in out
+    assert len([line for line in out.splitlines() if words in line]) == 1

@@ -154,3 +154,25 @@ def test_a_restarted_clock_starts_over():
     assert window.fill == 1
     done = assembler.add_joint_state(10, JOINTS, *_state(0))
     assert [r.stamp_ns for r in done] == [10] and window.fill == 0 and assembler.restarts == 1
+
+
+def test_a_stand_in_reward_lets_a_reward_reading_context_run():
+    assert reward_free_refusal('rma', 1, False, False, reward_prior=0.33) is None
+    # ... but never a privileged one, nor one that observes the reward
+    assert reward_free_refusal('oracle', 1, True, False, reward_prior=0.33) is not None
+    assert reward_free_refusal('zeus', 1, False, True, reward_prior=0.33) is not None
+    window = ContextWindow(3, 4, 2)
+    assembler = CommandTransitionAssembler(window, LAYOUT, reward=0.25)
+    assembler.add_joint_state(10, JOINTS, *_state(0))
+    assembler.add_command(np.ones(2))
+    assembler.add_joint_state(20, JOINTS, *_state(1))
+    assert window.arrays()[0][0, 6] == np.float32(0.25)
+
+
+def test_the_shipped_rma_knows_its_training_mean_of_the_reward():
+    from conftest import REPO
+    from zeus_ros.deploy.inference import InferenceModel
+    rma = InferenceModel.load(REPO / 'weights' / 'cheetah-run-wide-friction-rma-raw-150k')
+    sac = InferenceModel.load(REPO / 'weights' / 'cheetah-run-wide-friction-sac-150k')
+    assert 0.0 < rma.reward_prior() < 1.0    # cheetah-run's reward lies in [0, 1]
+    assert sac.reward_prior() is None

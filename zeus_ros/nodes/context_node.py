@@ -14,7 +14,9 @@ built from /joint_states and the commands that answered them
 (`command_type`, `command_topic`, `command_units`, `joints` as the policy's;
 zeus_ros.ros.commands.CommandTransitionAssembler), with no reward, so only
 weights whose context needs neither the reward nor the sim's true values run
-that way; others are refused at start-up (one line, exit 1).
+that way; others are refused at start-up (one line, exit 1), unless
+`missing_reward` training_mean puts psi's training mean of the reward in its
+place (an approximation; docs/pages/robot.md says what it costs).
 
 Bad input does not stop it: a joint state or StepInfo that does not fit the
 weights is ignored, a restarted sim (its clock starts again) is followed with
@@ -52,7 +54,8 @@ from zeus_ros.deploy.inference import DeployedModel
 from zeus_ros.core.window import ContextWindow
 from zeus_ros.ros.command_params import CommandPort, declare_command_port, units_of
 from zeus_ros.ros.commands import (ACTION_SOURCES, choose, CommandSetupError,
-                                   CommandTransitionAssembler, reward_free_refusal)
+                                   CommandTransitionAssembler, MISSING_REWARD,
+                                   reward_free_refusal)
 from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
                                      load_weights_parameter)
 from zeus_ros.ros.loop_spin import create_loop_subscription
@@ -117,10 +120,11 @@ class ContextNode(Node):
         super().__init__('context_node')
         self.model = load_weights_parameter(self)
         self.window = ContextWindow(self.model.k, self.model.obs_dim, self.model.action_dim)
-        self.port = self._command_port()   # None: the window's actions come from StepInfo
-        assembler = TransitionAssembler if self.port is None else CommandTransitionAssembler
-        self.assembler = assembler(self.window, self.model.meta.obs_layout.layout(),
-                                   on_clock=self.clock_event)
+        self.port, reward = self._command_port()   # None: actions come from StepInfo
+        layout = self.model.meta.obs_layout.layout()
+        self.assembler = TransitionAssembler(self.window, layout, on_clock=self.clock_event) \
+            if self.port is None else CommandTransitionAssembler(
+                self.window, layout, on_clock=self.clock_event, reward=reward)
         self.guard = ContextGuard(self.model)
         self.param_names = list(self.model.param_names)
         # The sim's TRUE values (StepInfo.param_values): read only by privileged
@@ -146,24 +150,35 @@ class ContextNode(Node):
         self.window_pub = self._window_publisher()
         self.create_timer(1.0, self.diagnostics_callback)
 
-    def _command_port(self) -> CommandPort | None:
-        """Declare `action_source` and, for commands, the command interface; refuse misfits."""
+    def _command_port(self) -> tuple[CommandPort | None, float]:
+        """Declare `action_source` and the command interface; return the port and the reward.
+
+        The port is None for step_info; the reward is what a window built from
+        commands holds in its place (NaN: none). Misfits are refused.
+        """
         source = self.declare_parameter('action_source', 'step_info', describe(
             "Where a transition's action comes from: step_info (the sim's StepInfo: the "
             'applied action and the reward) or commands (the commands answering each '
             'state: a robot without StepInfo; no reward); read-only.', read_only=True)).value
         port = declare_command_port(self, self.model.meta.action_layout.actuator_names,
                                     units_of(*self._units()))
+        missing = choose(self.declare_parameter('missing_reward', 'refuse', describe(
+            'action_source commands, weights whose context reads the reward: refuse (exit 1) '
+            "or training_mean (psi's training mean in its place, an approximation); "
+            'read-only.', read_only=True)).value, MISSING_REWARD, 'missing_reward')
         if choose(source, ACTION_SOURCES, 'action_source') == 'step_info':
-            return None
+            return None, math.nan
+        prior = self.model.reward_prior() if missing == 'training_mean' else None
         refusal = reward_free_refusal(self.model.method_name, self.model.context_dim,
                                       self.model.needs_true_param,
-                                      self.model.reward_in_observation)
+                                      self.model.reward_in_observation, prior)
         if refusal is not None:
-            raise CommandSetupError(f'action_source commands: {refusal}; use step_info')
+            raise CommandSetupError(f'action_source commands: {refusal}; use step_info, or '
+                                    'missing_reward training_mean (torch backend)')
+        reward = math.nan if prior is None or self.model.context_dim == 0 else prior
         self.get_logger().info(f'window from /joint_states and {port.command_type} '
-                               f'commands on {port.topic} (no reward)')
-        return port
+                               f'commands on {port.topic}; reward in its rows: {reward:g}')
+        return port, reward
 
     def _units(self) -> tuple:
         action = self.model.meta.action_layout

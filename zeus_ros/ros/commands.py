@@ -28,6 +28,9 @@ from zeus_ros.ros.pairing import (BadMessage, ClockListener, DUPLICATE, NEXT, OU
                                   observation_from_message, StampFollower, StateRecord)
 
 ACTION_SOURCES = ('step_info', 'commands')
+# What a window built from commands puts in place of the reward a robot does not give:
+# nothing (weights whose context reads it are refused) or psi's training mean.
+MISSING_REWARD = ('refuse', 'training_mean')
 COMMAND_TYPES = ('joint_state', 'float64_array')
 COMMAND_UNITS = ('normalised', 'actuator')
 # What each command type is published on when `command_topic` is left empty:
@@ -150,18 +153,21 @@ def make_codec(actuator_names: Sequence[str], joints: Sequence[str], units_mode:
 
 
 def reward_free_refusal(method: str, context_dim: int, needs_true_param: bool,
-                        reward_in_observation: bool) -> str | None:
+                        reward_in_observation: bool, reward_prior: float | None = None
+                        ) -> str | None:
     """Why a checkpoint cannot run on a window built without StepInfo, or None.
 
     Such a window lacks the reward and the sim's true values. Every context
     encoder of this project reads the reward in its rows (concat(s, a, r, s')),
-    so only a checkpoint without a context (context_dim 0) runs reward-free.
+    so only a checkpoint without a context (context_dim 0) runs reward-free,
+    unless a stand-in reward is given (`reward_prior`, psi's training mean:
+    `missing_reward` training_mean, an approximation).
     """
     if needs_true_param:
         return f'{method} reads the true parameter values, which only StepInfo carries'
     if reward_in_observation:
         return f'{method} observes the reward, which only StepInfo carries'
-    if context_dim > 0:
+    if context_dim > 0 and reward_prior is None:
         return (f"{method} reads the reward in its window rows (concat(s, a, r, s')), "
                 'which only StepInfo carries')
     return None
@@ -181,8 +187,9 @@ class CommandTransitionAssembler:
     """
 
     def __init__(self, window: ContextWindow, layout: ObservationLayout,
-                 on_clock: ClockListener | None = None):
+                 on_clock: ClockListener | None = None, reward: float = math.nan):
         self.window, self.layout, self.on_clock = window, layout, on_clock
+        self.reward = reward    # put in every row: NaN (unknown) or a stand-in
         self.clock = StampFollower()
         self.previous: StateRecord | None = None     # the last completed state
         self._waiting: list[StateRecord] = []         # states after it, oldest first
@@ -205,7 +212,7 @@ class CommandTransitionAssembler:
         obs = observation_from_message(self.layout, names, positions, velocities)
         if not self._accept(stamp_ns):
             return []
-        record = StateRecord(stamp_ns, obs, episode=0, step=0, reward=math.nan,
+        record = StateRecord(stamp_ns, obs, episode=0, step=0, reward=self.reward,
                              applied_action=np.zeros(self.window.action_dim), truncated=False)
         if self.previous is None:
             return [self._complete(record, None)]
@@ -273,7 +280,7 @@ class CommandTransitionAssembler:
             self._commands.pop(min(self._commands))
 
 
-__all__ = ['ACTION_SOURCES', 'ActuatorUnits', 'BadMessage', 'choose', 'COMMAND_TYPES',
-           'COMMAND_UNITS', 'CommandCodec', 'CommandSetupError', 'CommandTransitionAssembler',
-           'command_topic', 'DEFAULT_COMMAND_TOPICS', 'joint_order', 'make_codec',
-           'reward_free_refusal']
+__all__ = ['ACTION_SOURCES', 'ActuatorUnits', 'BadMessage', 'choose', 'command_topic',
+           'COMMAND_TYPES', 'COMMAND_UNITS', 'CommandCodec', 'CommandSetupError',
+           'CommandTransitionAssembler', 'DEFAULT_COMMAND_TOPICS', 'joint_order', 'make_codec',
+           'MISSING_REWARD', 'reward_free_refusal']

@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import json
 
-from conftest import REPO, spin_until
+from conftest import helper_script, REPO, spin_until
+from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
 import pytest
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from sim_driver import collect, start_node
 from std_msgs.msg import Float32MultiArray, Float64MultiArray
 from zeus_msgs.msg import Context, StepInfo
 from zeus_msgs.srv import Reset
-from zeus_ros.ros.util import reset_episode, stamp_ns
+from zeus_ros.ros.util import call_service, reset_episode, stamp_ns
 
 pytestmark = pytest.mark.ros
 
@@ -167,3 +170,107 @@ def test_a_misfit_command_interface_is_refused_at_start_up(spawn, node, params, 
     out = proc.output()
     assert words in out and 'Traceback' not in out
     assert len([line for line in out.splitlines() if words in line]) == 1
+
+
+def _estimates(contexts, since: int) -> np.ndarray:
+    """Return the decoded friction of the full-window contexts after index `since`."""
+    return np.array([c.param_estimates[0] for c in contexts[since:] if c.window_fill == 10])
+
+
+def test_the_shipped_rma_follows_a_friction_change_on_a_stand_in_robot(spawn, ros_node,
+                                                                       tmp_path):
+    """No sim_node, no StepInfo: a ros2_control-like robot, its friction changed on it."""
+    weights = with_units(RMA, tmp_path / 'rma-units')
+    port = {'command_type': 'float64_array', 'command_units': 'actuator'}
+    contexts = collect(ros_node, Context, '/zeus/context')
+    states = collect(ros_node, JointState, '/joint_states')
+    robot = spawn([*helper_script('standin_robot.py'), '--ros-args', '-p', 'friction:=4.0',
+                   '-p', 'real_time_factor:=0.5'], 'standin_robot')
+    procs = [robot,
+             start_node(spawn, 'context_node', {'weights': weights, 'action_source': 'commands',
+                                                'missing_reward': 'training_mean', **port}),
+             start_node(spawn, 'policy_node', {'weights': weights, 'require_step_info': False,
+                                               **port})]
+    assert spin_until(ros_node, lambda: len(_estimates(contexts, 0)) > 100, 120.0), \
+        '\n'.join(p.output()[-1500:] for p in procs)
+    set_friction = ros_node.create_client(SetParameters, '/standin_robot/set_parameters')
+    means = []
+    for friction in (0.1, 2.5):
+        mark = len(contexts)
+        spin_until(ros_node, lambda m=mark: len(contexts) > m + 100, 30.0)   # 2 s at 50 Hz
+        means.append(float(np.mean(_estimates(contexts, mark))))
+        request = SetParameters.Request(
+            parameters=[Parameter('friction', value=friction).to_parameter_msg()])
+        result = call_service(set_friction, request,
+                              lambda done, s: spin_until(ros_node, done, s), 30.0)
+        assert result.results[0].successful
+        mark = len(contexts)
+        spin_until(ros_node, lambda m=mark: len(contexts) > m + 200, 60.0)   # settle: 2 s
+    means.append(float(np.mean(_estimates(contexts, len(contexts) - 100))))
+    # 4.0 -> 0.1 -> 2.5 on the robot: the estimate falls, then rises.
+    assert means[1] < means[0] - 1.0 and means[2] > means[1] + 0.5, means
+    # The policy drove it: the cheetah ran forward (rootx velocity, the first joint).
+    assert np.mean([s.velocity[0] for s in states[-200:]]) > 0.5
+    assert robot.alive()
+
+
+def _diagnostic(ros_node, diagnostics, node: str, key: str, timeout: float = 10.0) -> str:
+    """Return the newest value of `key` in the named node's /diagnostics status."""
+    def newest():
+        for array in reversed(diagnostics):
+            for status in array.status:
+                values = {v.key: v.value for v in status.values}
+                if node in status.name and key in values:
+                    return values[key]
+        return None
+    spin_until(ros_node, newest, timeout)
+    return newest()
+
+
+def _free_running(spawn, ros_node, state_period: float, **policy) -> dict:
+    """SAC on the stand-in robot, states every `state_period` s, both nodes decimating."""
+    port = {'command_type': 'float64_array', 'control_period': -1.0}
+    states = collect(ros_node, JointState, '/joint_states')
+    commands = collect(ros_node, Float64MultiArray, '/forward_effort_controller/commands')
+    diagnostics = collect(ros_node, DiagnosticArray, '/diagnostics')
+    procs = {'robot': spawn([*helper_script('standin_robot.py'), '--ros-args',
+                             '-p', f'state_period:={state_period}',
+                             '-p', 'real_time_factor:=0.5'], 'standin_robot'),
+             'context': start_node(spawn, 'context_node', {
+                 'weights': SAC, 'action_source': 'commands', **port}),
+             'policy': start_node(spawn, 'policy_node', {
+                 'weights': SAC, 'require_step_info': False, **port, **policy})}
+    assert spin_until(ros_node, lambda: len(commands) > 50, 120.0), \
+        '\n'.join(p.output()[-1500:] for p in procs.values())
+    mark_states, mark_commands = len(states), len(commands)
+    spin_until(ros_node, lambda: len(states) > mark_states + 200, 60.0)
+    return {'procs': procs, 'states': states, 'commands': commands,
+            'diagnostics': diagnostics,
+            'ratio': (len(commands) - mark_commands) / (len(states) - mark_states)}
+
+
+@pytest.mark.parametrize('rate, answered', [(2.0, 0.5), (0.5, 1.0)])
+def test_free_running_states_at_other_rates_are_decimated_to_the_trained_period(
+        spawn, ros_node, rate, answered):
+    """2x the trained rate: every other state acted on; 0.5x: every state."""
+    run = _free_running(spawn, ros_node, 0.01 / rate)
+    # Commands answer the kept states (a few may be late or skipped under load).
+    assert answered * 0.8 <= run['ratio'] <= answered * 1.05, run['ratio']
+    decimated = int(_diagnostic(ros_node, run['diagnostics'], 'policy', 'decimated_states'))
+    assert (decimated > 100) if rate > 1 else (decimated == 0)
+    p50 = float(_diagnostic(ros_node, run['diagnostics'], 'policy', 'latency_p50_ms'))
+    p99 = float(_diagnostic(ros_node, run['diagnostics'], 'policy', 'latency_p99_ms'))
+    assert 0.0 < p50 <= p99 < 1000.0
+    # Held for one trained period as in training, the actions make the cheetah run.
+    assert np.mean([s.velocity[0] for s in run['states'][-100:]]) > 0.5
+
+
+def test_a_missing_context_gives_zero_efforts_counted(spawn, ros_node):
+    """The context node gone: each state waits context_timeout, then a zero command."""
+    run = _free_running(spawn, ros_node, 0.01, context_timeout=0.05)
+    assert run['procs']['context'].stop() == 0
+    mark = len(run['commands'])
+    assert spin_until(ros_node, lambda: len(run['commands']) > mark + 30, 30.0)
+    assert all(not any(c.data) for c in run['commands'][-10:]), 'non-zero without a context'
+    assert int(_diagnostic(ros_node, run['diagnostics'], 'policy', 'zero_actions',
+                           timeout=5.0)) > 0

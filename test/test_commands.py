@@ -176,3 +176,30 @@ def test_the_shipped_rma_knows_its_training_mean_of_the_reward():
     sac = InferenceModel.load(REPO / 'weights' / 'cheetah-run-wide-friction-sac-150k')
     assert 0.0 < rma.reward_prior() < 1.0    # cheetah-run's reward lies in [0, 1]
     assert sac.reward_prior() is None
+
+
+def test_the_decimator_keeps_one_state_per_control_period():
+    from zeus_ros.ros.timing import Decimator
+    ms = 1_000_000
+    twice = Decimator(10 * ms)
+    kept = [t for t in range(0, 100 * ms, 5 * ms) if twice.accept(t)]
+    assert kept == list(range(0, 100 * ms, 10 * ms)) and twice.skipped == 10
+    half = Decimator(10 * ms)
+    assert all(half.accept(t) for t in range(0, 200 * ms, 20 * ms))   # slower: all kept
+    jitter = Decimator(10 * ms)
+    assert [jitter.accept(t * ms) for t in (0, 9, 12, 19, 21)] == [True, True, False, True,
+                                                                    False]
+    assert jitter.accept(3 * ms), 'a clock that went back is a restart: kept'
+    every = Decimator(0)
+    assert all(every.accept(t) for t in (5, 6, 7))
+
+
+def test_latency_percentiles():
+    from zeus_ros.ros.timing import LatencyWindow
+    window = LatencyWindow()
+    assert window.report()['latency_p50_ms'] == 'nan'
+    for ms in range(1, 101):
+        window.record(ms / 1e3)
+    report = window.report()
+    assert float(report['latency_p50_ms']) == pytest.approx(50.5)
+    assert float(report['latency_p99_ms']) == pytest.approx(99.01)

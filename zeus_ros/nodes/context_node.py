@@ -52,7 +52,8 @@ from zeus_ros.ros.protocol import RecentCounts
 from zeus_ros.deploy.checkpoint import CheckpointError
 from zeus_ros.deploy.inference import DeployedModel
 from zeus_ros.core.window import ContextWindow
-from zeus_ros.ros.command_params import CommandPort, declare_command_port, units_of
+from zeus_ros.ros.command_params import (CommandPort, declare_command_port,
+                                         declare_decimator, units_of)
 from zeus_ros.ros.commands import (ACTION_SOURCES, choose, CommandSetupError,
                                    CommandTransitionAssembler, MISSING_REWARD,
                                    reward_free_refusal)
@@ -148,6 +149,9 @@ class ContextNode(Node):
             create_loop_subscription(self, self.port.message_type, self.port.topic,
                                      self.command_callback, LOOP_QOS)
         self.window_pub = self._window_publisher()
+        # As the policy's: the same stamps kept, one per trained period (commands only:
+        # the sim's StepInfo path sees one state per period by construction).
+        self.decimator = declare_decimator(self, self.model.meta.control_timestep)
         self.create_timer(1.0, self.diagnostics_callback)
 
     def _command_port(self) -> tuple[CommandPort | None, float]:
@@ -195,6 +199,8 @@ class ContextNode(Node):
             if publish else None
 
     def joint_state_callback(self, msg: JointState) -> None:
+        if self.port is not None and not self.decimator.accept(stamp_ns(msg.header)):
+            return
         try:
             record = self.assembler.add_joint_state(stamp_ns(msg.header), msg.name,
                                                     msg.position, msg.velocity)
@@ -283,7 +289,8 @@ class ContextNode(Node):
                       non_finite_latents=self.guard.non_finite_latents,
                       non_finite_estimates=self.guard.non_finite_estimates)
         values = dict(self.context_rate.report(), window_fill=self.window.fill,
-                      window_k=self.window.k, **counts)
+                      window_k=self.window.k, decimated_states=self.decimator.skipped,
+                      **counts)
         # The level says what happened lately, the values count since start.
         problem = self.recent.problem(time.monotonic(), counts)
         self.diagnostics_pub.publish(diagnostic_array(self, 'context', self.model.family,

@@ -45,7 +45,8 @@ from zeus_msgs.msg import Context, StepInfo
 
 from zeus_ros.ros.protocol import RecentCounts
 from zeus_ros.deploy.checkpoint import CheckpointError
-from zeus_ros.ros.command_params import declare_command_port, units_of
+from zeus_ros.ros.command_params import declare_command_port, declare_decimator, units_of
+from zeus_ros.ros.timing import LatencyWindow
 from zeus_ros.ros.commands import CommandSetupError
 from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
                                      load_weights_parameter)
@@ -96,6 +97,9 @@ class PolicyNode(Node):
             action.ctrl_low, action.ctrl_high, action.gear))
         self.command_pub = self.create_publisher(self.port.message_type, self.port.topic,
                                                  LOOP_QOS)
+        # A robot's states may come faster than the trained period: act on one per period.
+        self.decimator = declare_decimator(self, self.model.meta.control_timestep)
+        self.latencies = LatencyWindow()
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         create_loop_subscription(self, JointState, '/joint_states', self.joint_state_callback,
                                  LOOP_QOS)
@@ -138,6 +142,8 @@ class PolicyNode(Node):
                                               f'{self.model.family} weights: {error}')
             return
         stamp = stamp_ns(msg.header)
+        if not self.decimator.accept(stamp):
+            return
         now = time.monotonic()
         self.received_at[stamp] = now
         # phi(s) now, unless the observation still lacks its reward (the context brings it).
@@ -212,13 +218,16 @@ class PolicyNode(Node):
         self.command_pub.publish(self.port.message(action, stamp))
         received = self.received_at.get(stamp, time.monotonic())
         self.action_rate.record(time.monotonic() - received)
+        self.latencies.record(time.monotonic() - received)
         forget_received(self.received_at, stamp)
 
     def diagnostics_callback(self) -> None:
         # Skipped states are not a problem (realtime mode answers the newest).
         counts = dict(self.counters, clock_restarts=self.pairer.restarts,
                       stamp_outliers=self.pairer.outliers)
-        values = dict(self.action_rate.report(), dropped_states=self.pairer.dropped,
+        values = dict(self.action_rate.report(), **self.latencies.report(),
+                      decimated_states=self.decimator.skipped,
+                      dropped_states=self.pairer.dropped,
                       family_checked=self.family_checked, **counts)
         # The level says what happened lately, the values count since start.
         problem = self.recent.problem(time.monotonic(), counts)

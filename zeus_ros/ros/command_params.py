@@ -23,6 +23,7 @@ from std_msgs.msg import Float64MultiArray
 from zeus_ros.ros.commands import (ActuatorUnits, choose, command_topic, COMMAND_TYPES,
                                    COMMAND_UNITS, CommandCodec, DEFAULT_COMMAND_TOPICS,
                                    make_codec)
+from zeus_ros.ros.timing import Decimator
 from zeus_ros.ros.util import describe, set_stamp, stamp_ns
 
 MESSAGE_TYPES = {'joint_state': JointState, 'float64_array': Float64MultiArray}
@@ -117,6 +118,16 @@ def declare_command_port(node: Node, actuator_names: Sequence[str],
     """Declare the command parameters and return the port they describe (see command_port)."""
     declare_command_parameters(node)
     return command_port(node, actuator_names, units)
+
+
+def declare_decimator(node: Node, trained_period_s: float | None) -> Decimator:
+    """Declare `control_period` and return the decimator it gives (see ros.timing)."""
+    value = node.declare_parameter('control_period', 0.0, describe(
+        'Seconds between the states acted on, kept by stamp (faster states are skipped): '
+        "0 = every state (the sim's loop), -1 = the weights' trained control period (a "
+        'robot at its own rate); read-only.', read_only=True)).value
+    period = (trained_period_s or 0.0) if value < 0 else float(value)
+    return Decimator(round(period * 1e9))
 
 
 def units_of(low: Sequence[float] | None, high: Sequence[float] | None,

@@ -279,3 +279,19 @@ def test_a_missing_context_gives_zero_efforts_counted(spawn, ros_node, tmp_path)
     zeros = _diagnostic(ros_node, run['diagnostics'], 'policy', 'zero_actions', timeout=5.0,
                         wanted=lambda value: int(value) > 0)
     assert int(zeros) > 0, 'the zero actions were not counted'
+
+
+def test_with_a_context_age_bound_the_policy_answers_without_waiting(spawn, ros_node,
+                                                                     tmp_path):
+    """context_max_age: each state answered at once with the newest context (RMA's split)."""
+    run = _free_running(spawn, ros_node, tmp_path, 0.01, context_max_age=0.03)
+    older = _diagnostic(ros_node, run['diagnostics'], 'policy', 'older_contexts',
+                        wanted=lambda value: int(value) > 50)
+    assert int(older) > 50, 'no state answered with an older context'
+    assert 0.8 <= run['ratio'] <= 1.05, run['ratio']
+    assert np.mean([s.velocity[0] for s in run['states'][-100:]]) > 0.5
+    # Gone, the context ages past the bound: zero efforts again after the timeout.
+    assert run['procs']['context'].stop() == 0
+    mark = len(run['commands'])
+    assert spin_until(ros_node, lambda: len(run['commands']) > mark + 30, 30.0)
+    assert all(not any(c.data) for c in run['commands'][-10:])

@@ -73,7 +73,8 @@ class PolicyNode(Node):
         self.layout = self.model.meta.obs_layout.layout()
         self.actuator_names = list(self.model.meta.action_layout.actuator_names)
         self.zero_action = np.zeros(self.model.action_dim)
-        self.pairer = StateContextPairer(timeout, on_clock=self.clock_event)
+        self.pairer = StateContextPairer(timeout, on_clock=self.clock_event,
+                                         max_context_age_ns=self._max_context_age_ns())
         self.received_at: dict[int, float] = {}
         self.counters = {'zero_actions': 0, 'non_finite_actions': 0, 'bad_contexts': 0,
                          'bad_joint_states': 0}
@@ -106,6 +107,18 @@ class PolicyNode(Node):
         create_loop_subscription(self, Context, '/zeus/context', self.context_callback, LOOP_QOS)
         self.create_timer(1.0, self.diagnostics_callback)
         self.add_post_set_parameters_callback(self.parameters_callback)
+
+    def _max_context_age_ns(self) -> int:
+        age = declare_double(self, 'context_max_age', 0.0, describe(
+            '0: a state waits for its own context; > 0 (s): it is answered at once with the '
+            'newest context at most this much older (asynchronous adaptation); read-only.',
+            read_only=True,
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=60.0)]))
+        if age > 0 and self.model.reward_in_observation:
+            raise ParameterException('must be 0 for weights that observe the reward '
+                                     "(the context brings the state's own reward)",
+                                     'context_max_age')
+        return round(age * 1e9)
 
     def _require_step_info(self) -> bool:
         value = self.declare_parameter('require_step_info', True, describe(
@@ -227,6 +240,7 @@ class PolicyNode(Node):
                       stamp_outliers=self.pairer.outliers)
         values = dict(self.action_rate.report(), **self.latencies.report(),
                       decimated_states=self.decimator.skipped,
+                      older_contexts=self.pairer.older_contexts,
                       dropped_states=self.pairer.dropped,
                       family_checked=self.family_checked, **counts)
         # The level says what happened lately, the values count since start.

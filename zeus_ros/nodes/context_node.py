@@ -177,8 +177,10 @@ class ContextNode(Node):
                                       self.model.needs_true_param,
                                       self.model.reward_in_observation, prior)
         if refusal is not None:
-            raise CommandSetupError(f'action_source commands: {refusal}; use step_info, or '
-                                    'missing_reward training_mean (torch backend)')
+            # The stand-in reward helps only a context whose one lack is the reward.
+            only_reward = not (self.model.needs_true_param or self.model.reward_in_observation)
+            hint = ', or missing_reward training_mean (torch backend)' if only_reward else ''
+            raise CommandSetupError(f'action_source commands: {refusal}; use step_info{hint}')
         reward = math.nan if prior is None or self.model.context_dim == 0 else prior
         self.get_logger().info(f'window from /joint_states and {port.command_type} '
                                f'commands on {port.topic}; reward in its rows: {reward:g}')

@@ -295,3 +295,48 @@ def test_with_a_context_age_bound_the_policy_answers_without_waiting(spawn, ros_
     mark = len(run['commands'])
     assert spin_until(ros_node, lambda: len(run['commands']) > mark + 30, 30.0)
     assert all(not any(c.data) for c in run['commands'][-10:])
+
+
+def _distance_on_schedule(spawn, ros_node, weights, schedule, **context) -> float:
+    """How far the cheetah ran (rootx, m) on the stand-in robot through a friction schedule.
+
+    cheetah-run's reward is min(speed / 10, 1) and the speeds here stay under
+    10 m/s, so the distance is the return's proxy (the robot gives no reward).
+    """
+    port = {'command_type': 'float64_array', 'command_units': 'actuator'}
+    states = collect(ros_node, JointState, '/joint_states')
+    procs = [spawn([*helper_script('standin_robot.py'), '--ros-args',
+                    '-p', f'friction:={schedule[0][1]}', '-p', 'real_time_factor:=0.5'],
+                   'standin_robot'),
+             start_node(spawn, 'context_node', {'weights': weights, 'action_source': 'commands',
+                                                **port, **context}),
+             start_node(spawn, 'policy_node', {'weights': weights, 'require_step_info': False,
+                                               **port})]
+    client = ros_node.create_client(SetParameters, '/standin_robot/set_parameters')
+    commands = collect(ros_node, Float64MultiArray, '/forward_effort_controller/commands')
+    assert spin_until(ros_node, lambda: len(commands) > 10, 120.0), \
+        '\n'.join(p.output()[-1500:] for p in procs)
+    start = states[-1].position[0]
+    for steps, friction in schedule:
+        request = SetParameters.Request(
+            parameters=[Parameter('friction', value=friction).to_parameter_msg()])
+        assert call_service(client, request, lambda done, s: spin_until(ros_node, done, s),
+                            30.0).results[0].successful
+        mark = len(states)
+        assert spin_until(ros_node, lambda m=mark, n=steps: len(states) >= m + n, 60.0)
+    distance = states[-1].position[0] - start
+    for proc in procs:
+        proc.stop()
+    ros_node.destroy_client(client)
+    return distance
+
+
+def test_on_the_stand_in_robot_the_adaptive_cheetah_runs_further_than_the_reference(
+        spawn, ros_node, tmp_path):
+    """The same friction schedule on the robot: rma (no reward, its training mean) ahead of sac."""
+    schedule = [(300, 1.0), (300, 4.0)]     # (states, friction): 3 s each, simulated
+    adaptive = _distance_on_schedule(spawn, ros_node, with_units(RMA, tmp_path / 'rma'),
+                                     schedule, missing_reward='training_mean')
+    reference = _distance_on_schedule(spawn, ros_node, with_units(SAC, tmp_path / 'sac'),
+                                      schedule)
+    assert adaptive > reference > 0.0, (adaptive, reference)

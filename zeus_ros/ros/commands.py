@@ -177,13 +177,15 @@ class CommandTransitionAssembler:
     """Feeds the window from joint states and the commands that answered them.
 
     A state completes (gets its context) once the command answering the state
-    before it is in: the transition (s, a, r, s') is pushed then, with r NaN
-    (unknown without StepInfo). A stamped command (JointState) answers the
-    state of its stamp; an unstamped one (Float64MultiArray) answers the
-    state a waiting state follows, else the newest state. A state whose
-    predecessor got no command, or that does not follow it, starts an empty
-    window, as the StepInfo path does at an episode start or a gap.
-    There are no episodes: a robot's clock restarting is the only boundary.
+    before it is in: the transition (s, a, r, s') is pushed then, with r the
+    assembler's `reward` (NaN: unknown without StepInfo; or a stand-in). A
+    stamped command (JointState) answers the state of its stamp; an unstamped
+    one (Float64MultiArray) answers the state a waiting state follows, else
+    the newest state. A state whose predecessor got no command starts an
+    empty window, as the StepInfo path does at a gap. Without step numbers a
+    state this node never received goes unnoticed: the next transition then
+    spans two periods. There are no episodes: a robot's clock restarting is
+    the only boundary.
     """
 
     def __init__(self, window: ContextWindow, layout: ObservationLayout,

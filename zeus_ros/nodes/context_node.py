@@ -263,7 +263,8 @@ class ContextNode(Node):
             self.warnings.warn('non_finite', problem)
         msg = Context(latent=latent.tolist(), window_fill=self.window.fill,
                       param_names=self.param_names, param_estimates=estimates.tolist(),
-                      reward=float(record.reward))
+                      # A window built from commands has no reward of its own to tell.
+                      reward=float(record.reward) if self.port is None else math.nan)
         set_stamp(msg.header, record.stamp_ns)
         self.context_pub.publish(msg)
         if self.window_pub is not None:

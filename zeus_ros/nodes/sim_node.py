@@ -152,9 +152,9 @@ class SimNode(Node):
         self.step_pub = self.create_publisher(StepInfo, '/zeus/step', STATE_QOS) \
             if self.publish_step_info else None
         self.clock_pub = self.create_publisher(Clock, '/clock', STATE_QOS)
-        self.port = command_port(self, self.env.actuator_names,
-                                         units_of(*getattr(self.env, 'actuator_units',
-                                                           (None, None, None))))
+        # Sawyer's hand deltas have no control range or gear: normalised commands only.
+        units = getattr(self.env, 'actuator_units', (None, None, None))
+        self.port = command_port(self, self.env.actuator_names, units_of(*units))
         self.command_sub = create_loop_subscription(self, self.port.message_type,
                                                     self.port.topic, self.command_callback,
                                                     STATE_QOS)

@@ -264,6 +264,14 @@ class ParamEnv:
         return self.layout.joint_names
 
     @property
+    def actuator_units(self) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        """(ctrl low, ctrl high, gear) per actuator: a motor's effort is gear * ctrl."""
+        model = self._physics.model
+        ranges = model.actuator_ctrlrange
+        return (tuple(float(v) for v in ranges[:, 0]), tuple(float(v) for v in ranges[:, 1]),
+                tuple(float(v) for v in model.actuator_gear[:, 0]))
+
+    @property
     def obs_dim(self) -> int:
         """Length of the observation vector."""
         return self.layout.size

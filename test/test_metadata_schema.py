@@ -77,3 +77,38 @@ def test_a_newer_format_is_refused_by_name():
     with pytest.raises(MetadataError, match='^format_version: checkpoint format 2, this code '
                                             'reads 1$'):
         CheckpointMetadata.parse(newer)
+
+
+CHEETAH_RMA = REPO / 'weights' / 'cheetah-run-wide-friction-rma-raw-150k'
+
+
+def test_actuator_units_are_optional_and_round_trip():
+    # Checkpoints from before #49 carry no control range or gear and still load.
+    old = raw(CHEETAH_RMA)
+    assert 'gear' not in old['action_layout']
+    assert CheckpointMetadata.parse(old).action_layout.gear is None
+    newer = raw(CHEETAH_RMA)
+    newer['action_layout'].update(ctrl_low=[-1.0] * 6, ctrl_high=[1.0] * 6,
+                                  gear=[120.0, 90.0, 60.0, 90.0, 60.0, 30.0])
+    meta = CheckpointMetadata.parse(newer)
+    assert meta.action_layout.gear[0] == 120.0
+    assert meta.to_json() == json.dumps(newer, indent=2, sort_keys=True)
+
+
+@pytest.mark.parametrize('change, field', [
+    (dict(gear=[1.0] * 6), 'gear'),                                          # alone
+    (dict(ctrl_low=[-1.0] * 6, ctrl_high=[1.0] * 6, gear=[1.0] * 5), 'gear'),  # one short
+    (dict(ctrl_low=[1.0] * 6, ctrl_high=[-1.0] * 6, gear=[1.0] * 6), 'ctrl_high'),
+])
+def test_inconsistent_actuator_units_are_refused_by_name(change, field):
+    bad = raw(CHEETAH_RMA)
+    bad['action_layout'].update(change)
+    with pytest.raises(MetadataError, match=rf'^action_layout\.{field}: '):
+        CheckpointMetadata.parse(bad)
+
+
+def test_the_trainer_records_the_units_of_its_env():
+    from sim_node.env import make_env
+    from zeus_ros.learning_tools.train import env_info
+    info = env_info(make_env('cheetah-run-wide-friction'))
+    assert info['actuator_units'][2] == (120.0, 90.0, 60.0, 90.0, 60.0, 30.0)

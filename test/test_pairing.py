@@ -261,3 +261,35 @@ def test_recent_counts_forget_a_gap_after_the_window():
     assert recent.problem(12.0, {'gaps': 1, 'dropped': 0}) is None
     assert recent.rises(13.0, {'gaps': 1, 'dropped': 4}) == {'gaps': 0, 'dropped': 4}
 
+
+
+def test_pairer_with_a_context_age_bound_answers_at_once_with_the_newest_context():
+    # #49: a robot's policy need not wait for its state's own context.
+    pairer = StateContextPairer(context_timeout=0.5, max_context_age_ns=25)
+    obs, latent = np.zeros(3), np.ones(2, dtype=np.float32)
+    pairer.add_state(10, obs, now=0.0)
+    assert pairer.ready() is None                   # no context at all yet: it waits
+    pairer.add_context(10, latent)
+    assert pairer.ready()[0] == 10 and pairer.older_contexts == 0   # its own
+    pairer.add_state(20, obs, now=0.1)
+    stamp, _, got = pairer.ready()                  # at once, with 10's context
+    assert stamp == 20 and got[0] == 1 and pairer.older_contexts == 1
+    pairer.add_context(20, latent * 2)              # 20's own context, late: nothing to do
+    assert pairer.ready() is None
+    pairer.add_state(40, obs, now=0.2)
+    assert pairer.ready()[2][0] == 2                # 20's, 20 ns older: within the bound
+    pairer.add_state(70, obs, now=0.3)
+    assert pairer.ready() is None                   # 30 ns older than 20's: too old, waits
+    assert pairer.expired(now=0.9) == 70            # and times out as without a bound
+    pairer.add_context(5, latent)                   # a restarted clock: forget the old one
+    pairer.add_state(6, obs, now=1.0)
+    assert pairer.ready()[0] == 6
+
+
+def test_pairer_without_an_age_bound_never_uses_another_states_context():
+    pairer = StateContextPairer(context_timeout=0.5)
+    pairer.add_state(10, np.zeros(3), now=0.0)
+    pairer.add_context(10, np.ones(2))
+    pairer.ready()
+    pairer.add_state(20, np.zeros(3), now=0.1)
+    assert pairer.ready() is None and pairer.older_contexts == 0

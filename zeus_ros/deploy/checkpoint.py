@@ -159,7 +159,7 @@ def build_metadata(agent: Agent, env_info: dict, counters: dict, run: dict | Non
         # Always the joined names, as older readers expect; the list only for several.
         param_name=', '.join(names), param_names=names if len(names) > 1 else (),
         obs_layout=_obs_layout(agent.obs_dim, env_info),
-        action_layout=ActionLayoutMeta(agent.action_dim, tuple(env_info['actuator_names'])),
+        action_layout=_action_layout(agent.action_dim, env_info),
         context=ContextMeta(k=cfg.context_length, row_dim=agent.row_dim,
                             aggregation=cfg.aggregation, context_dim=agent.method.context_dim,
                             method=cfg.method,
@@ -172,6 +172,15 @@ def build_metadata(agent: Agent, env_info: dict, counters: dict, run: dict | Non
         git_commit=git_commit(), created_unix=time.time(),
         family_file=None if 'family_file' not in env_info else
         parse_section(FamilyFileMeta, env_info['family_file'], 'family_file.'))
+
+
+def _action_layout(action_dim: int, env_info: dict) -> ActionLayoutMeta:
+    """Return the actuators, with their control range and gear when the environment gives them."""
+    units = env_info.get('actuator_units')   # (low, high, gear), absent for sawyer's deltas
+    low, high, gear = (None, None, None) if units is None else \
+        (tuple(float(v) for v in values) for values in units)
+    return ActionLayoutMeta(action_dim, tuple(env_info['actuator_names']),
+                            ctrl_low=low, ctrl_high=high, gear=gear)
 
 
 def write_metadata(directory: Path, meta: CheckpointMetadata) -> None:

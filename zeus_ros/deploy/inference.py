@@ -125,6 +125,15 @@ class DeployedModel:
                              'use decode_values')
         return float(self.decode_values(latent)[0])
 
+    def reward_prior(self) -> float | None:
+        """Return the reward psi's standardiser saw on average in training (None: unknown).
+
+        Filled in for a reward a robot cannot give (zeus_ros.ros.commands): its
+        standardised value is 0, the feature's training mean. None where the
+        backend cannot read it (ONNX) or psi has no standardiser.
+        """
+        return None
+
     # -- what a backend writes (arrays [1, ...], float32 in and out) -------------------
     def _context(self, rows: np.ndarray, mask: np.ndarray,
                  param: np.ndarray | None) -> np.ndarray:
@@ -164,6 +173,13 @@ class InferenceModel(DeployedModel):
         torch.set_num_threads(1)
         meta, method, modules = load_model(path, expected_family, obs_dim, action_dim)
         return cls(meta, method, modules)
+
+    def reward_prior(self) -> float | None:
+        norm = getattr(getattr(self.method, 'psi', None), 'norm', None)
+        if norm is None or self.method.context_dim == 0:
+            return None
+        # The reward's column of a row concat(s, a, r, s') (or of its delta features).
+        return float(norm.mean[self.obs_dim + self.action_dim])
 
     @torch.no_grad()
     def _context(self, rows: np.ndarray, mask: np.ndarray,

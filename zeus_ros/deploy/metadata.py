@@ -144,6 +144,12 @@ class ActionLayoutMeta(Section):
     action_dim: Annotated[int, Between(1, 10_000)]
     actuator_names: tuple[str, ...]
     range: tuple[float, ...] = ACTION_RANGE
+    # Each actuator's control range and gear (MuJoCo motors: effort = gear * ctrl),
+    # so that a robot can be commanded in joint units (#49). Absent in checkpoints
+    # from before: such weights command in normalised units only.
+    ctrl_low: tuple[float, ...] | None = field(default=None, metadata=WRITTEN_IF_SET)
+    ctrl_high: tuple[float, ...] | None = field(default=None, metadata=WRITTEN_IF_SET)
+    gear: tuple[float, ...] | None = field(default=None, metadata=WRITTEN_IF_SET)
 
 
 @dataclass(frozen=True)
@@ -604,12 +610,28 @@ def _run_consistency(run: RunMeta, meta: CheckpointMetadata):
                f'must be config.{name} ({shown(config.get(name))}), got {shown(value)}')
 
 
+def _units_consistency(act: ActionLayoutMeta):
+    """Control range and gear: all three or none, one finite value per actuator, low < high."""
+    units = {'ctrl_low': act.ctrl_low, 'ctrl_high': act.ctrl_high, 'gear': act.gear}
+    given = [name for name, values in units.items() if values is not None]
+    yield (len(given) in (0, 3), 'action_layout.gear',
+           f'ctrl_low, ctrl_high and gear come together, got only {", ".join(given)}')
+    for name in given:
+        values = units[name]
+        yield (len(values) == act.action_dim and all(math.isfinite(v) for v in values),
+               f'action_layout.{name}', f'must be {act.action_dim} finite numbers, got {values}')
+    if len(given) == 3 and len(act.ctrl_low) == len(act.ctrl_high):
+        yield (all(lo < hi for lo, hi in zip(act.ctrl_low, act.ctrl_high, strict=True)),
+               'action_layout.ctrl_high', 'must exceed ctrl_low for every actuator')
+
+
 def _layout_consistency(obs: ObsLayoutMeta, act: ActionLayoutMeta, config: dict):
     names = len(act.actuator_names)
     yield (act.action_dim == names, 'action_layout.action_dim',
            f'must be {names} (action_layout.actuator_names), got {act.action_dim}')
     yield (act.range == ACTION_RANGE, 'action_layout.range',
            f'must be {list(ACTION_RANGE)} (the tanh actor and the sim), got {list(act.range)}')
+    yield from _units_consistency(act)
     wanted = config.get('reward_in_observation', False)
     yield (obs.reward_in_observation == wanted, 'obs_layout.reward_in_observation',
            f'must be config.reward_in_observation ({wanted}), got {obs.reward_in_observation}')

@@ -73,7 +73,9 @@ def env_info(env: FamilyEnv) -> dict:
             'actuator_names': env.actuator_names, 'train_values': env.spec.train,
             'control_timestep': env.control_timestep,
             'reward_in_observation': env.layout.reward_in_observation,
-            'velocity_encoding': env.layout.velocity_encoding}
+            'velocity_encoding': env.layout.velocity_encoding,
+            # Control range and gear of a MuJoCo motor env (the joint units of a command).
+            'actuator_units': getattr(env, 'actuator_units', None)}
     if isinstance(env.spec, FileFamilySpec):
         # The file and its model travel with the weights: a checkpoint loads without them.
         info['family_file'] = {'path': env.spec.origin, 'sha256': env.spec.sha256,

@@ -2,7 +2,9 @@
 
 Subscribes /joint_states and /zeus/context; when the state and the context of
 one stamp are both in, publishes the deterministic (mean) action on
-/joint_commands with that stamp and the actuator names. phi(s) is computed
+/joint_commands with that stamp and the actuator names, or, by `command_type`
+float64_array, as ros2_control's forward_command_controller takes it
+(zeus_ros.ros.command_params: topic, joint order, units). phi(s) is computed
 as soon as the state arrives, while the context node works on its latent
 (for weights whose observation ends with the reward into the state, once the
 context brings that reward: Context.reward). It
@@ -12,7 +14,8 @@ and a warning (before the first context ever came, no answer: the sim's own
 command timeout applies the zero action).
 
 It acts only once the sim's first StepInfo has shown the weights' family (a
-sim of another family ends the node with code 1 and one line). A joint state
+sim of another family ends the node with code 1 and one line); with
+`require_step_info` false (a robot publishes none) it acts at once, unchecked. A joint state
 that does not fit the weights is ignored, a restarted sim (its clock starts
 again) is followed (`zeus_ros.ros.pairing.StampFollower`), and a non-finite
 action becomes the zero action; each is counted, warned (throttled) and
@@ -35,12 +38,16 @@ from typing import TYPE_CHECKING
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from zeus_msgs.msg import Context, StepInfo
 
 from zeus_ros.ros.protocol import RecentCounts
 from zeus_ros.deploy.checkpoint import CheckpointError
+from zeus_ros.ros.command_params import declare_command_port, declare_decimator, units_of
+from zeus_ros.ros.timing import LatencyWindow
+from zeus_ros.ros.commands import CommandSetupError
 from zeus_ros.ros.controller import (check_family, describe_clock_event, GraphMismatch,
                                      load_weights_parameter)
 from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
@@ -48,7 +55,7 @@ from zeus_ros.ros.pairing import (BadMessage, forget_received, observation_from_
                               StateContextPairer)
 from zeus_ros.ros.util import (declare_double, describe, diagnostic_array, FirstContact,
                                LOOP_QOS, RateMeter, run_node,
-                               set_stamp, stamp_ns, ThrottledWarnings)
+                               stamp_ns, ThrottledWarnings)
 
 if TYPE_CHECKING:
     from rclpy.parameter import Parameter
@@ -66,7 +73,8 @@ class PolicyNode(Node):
         self.layout = self.model.meta.obs_layout.layout()
         self.actuator_names = list(self.model.meta.action_layout.actuator_names)
         self.zero_action = np.zeros(self.model.action_dim)
-        self.pairer = StateContextPairer(timeout, on_clock=self.clock_event)
+        self.pairer = StateContextPairer(timeout, on_clock=self.clock_event,
+                                         max_context_age_ns=self._max_context_age_ns())
         self.received_at: dict[int, float] = {}
         self.counters = {'zero_actions': 0, 'non_finite_actions': 0, 'bad_contexts': 0,
                          'bad_joint_states': 0}
@@ -81,17 +89,45 @@ class PolicyNode(Node):
                                           'waiting for the first context: not answering')
         # The family is checked once, on the first StepInfo, by the executor
         # thread; the subscription then goes, so it costs nothing per step.
-        self.family_checked = False
-        self.family_sub = self.create_subscription(StepInfo, '/zeus/step',
-                                                   self.family_callback, LOOP_QOS)
-
-        self.command_pub = self.create_publisher(JointState, '/joint_commands', LOOP_QOS)
+        self.family_checked = not self._require_step_info()
+        if not self.family_checked:
+            self.family_sub = self.create_subscription(StepInfo, '/zeus/step',
+                                                       self.family_callback, LOOP_QOS)
+        action = self.model.meta.action_layout
+        self.port = declare_command_port(self, self.actuator_names, units_of(
+            action.ctrl_low, action.ctrl_high, action.gear))
+        self.command_pub = self.create_publisher(self.port.message_type, self.port.topic,
+                                                 LOOP_QOS)
+        # A robot's states may come faster than the trained period: act on one per period.
+        self.decimator = declare_decimator(self, self.model.meta.control_timestep)
+        self.latencies = LatencyWindow()
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         create_loop_subscription(self, JointState, '/joint_states', self.joint_state_callback,
                                  LOOP_QOS)
         create_loop_subscription(self, Context, '/zeus/context', self.context_callback, LOOP_QOS)
         self.create_timer(1.0, self.diagnostics_callback)
         self.add_post_set_parameters_callback(self.parameters_callback)
+
+    def _max_context_age_ns(self) -> int:
+        age = declare_double(self, 'context_max_age', 0.0, describe(
+            '0: a state waits for its own context; > 0 (s): it is answered at once with the '
+            'newest context at most this much older (asynchronous adaptation); read-only.',
+            read_only=True,
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=60.0)]))
+        if age > 0 and self.model.reward_in_observation:
+            raise ParameterException('must be 0 for weights that observe the reward '
+                                     "(the context brings the state's own reward)",
+                                     'context_max_age')
+        return round(age * 1e9)
+
+    def _require_step_info(self) -> bool:
+        value = self.declare_parameter('require_step_info', True, describe(
+            "true: act once the sim's first StepInfo has shown the weights' family; "
+            'false: act at once, for a robot that publishes no StepInfo (read-only).',
+            read_only=True)).value
+        if not isinstance(value, bool):
+            raise ParameterException('must be true or false', 'require_step_info')
+        return value
 
     def parameters_callback(self, params: list[Parameter]) -> None:
         for param in params:
@@ -119,6 +155,8 @@ class PolicyNode(Node):
                                               f'{self.model.family} weights: {error}')
             return
         stamp = stamp_ns(msg.header)
+        if not self.decimator.accept(stamp):
+            return
         now = time.monotonic()
         self.received_at[stamp] = now
         # phi(s) now, unless the observation still lacks its reward (the context brings it).
@@ -190,18 +228,20 @@ class PolicyNode(Node):
         self.publish_command(stamp, self.zero_action)
 
     def publish_command(self, stamp: int, action: np.ndarray) -> None:
-        msg = JointState(name=self.actuator_names, effort=action.tolist())
-        set_stamp(msg.header, stamp)
-        self.command_pub.publish(msg)
+        self.command_pub.publish(self.port.message(action, stamp))
         received = self.received_at.get(stamp, time.monotonic())
         self.action_rate.record(time.monotonic() - received)
+        self.latencies.record(time.monotonic() - received)
         forget_received(self.received_at, stamp)
 
     def diagnostics_callback(self) -> None:
         # Skipped states are not a problem (realtime mode answers the newest).
         counts = dict(self.counters, clock_restarts=self.pairer.restarts,
                       stamp_outliers=self.pairer.outliers)
-        values = dict(self.action_rate.report(), dropped_states=self.pairer.dropped,
+        values = dict(self.action_rate.report(), **self.latencies.report(),
+                      decimated_states=self.decimator.skipped,
+                      older_contexts=self.pairer.older_contexts,
+                      dropped_states=self.pairer.dropped,
                       family_checked=self.family_checked, **counts)
         # The level says what happened lately, the values count since start.
         problem = self.recent.problem(time.monotonic(), counts)
@@ -210,7 +250,7 @@ class PolicyNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(PolicyNode, args, fatal=(CheckpointError, GraphMismatch))
+    return run_node(PolicyNode, args, fatal=(CheckpointError, GraphMismatch, CommandSetupError))
 
 
 if __name__ == '__main__':

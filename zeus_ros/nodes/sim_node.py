@@ -1,6 +1,10 @@
 """sim_node: a parameter-varied MuJoCo robot on ROS 2, with live physics swaps.
 
 Publishes /joint_states, /zeus/step and /clock; steps on /joint_commands.
+For a controller written for a ros2_control robot: `command_type`
+float64_array takes std_msgs/Float64MultiArray (default topic
+/forward_effort_controller/commands; `joints` order, `command_units`), which
+answers the state awaited; `publish_step_info` false leaves /zeus/step out.
 In `lockstep` mode every published state waits for the command that answers
 its stamp (zero action after `command_timeout`); in `realtime` mode the node
 steps on an absolute tick schedule at the control rate times
@@ -55,6 +59,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_parameters
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 from zeus_msgs.msg import StepInfo
 from zeus_msgs.srv import Reset
 
@@ -64,6 +69,7 @@ from sim_node.family_edits import load_family_file
 from sim_node.stepper import MODES, PublishedState, SimStepper, StepOutcome
 from sim_node.swaps import format_values, SwapQueue
 from zeus_ros.ros.camera import CameraPublisher
+from zeus_ros.ros.command_params import command_port, declare_command_parameters, units_of
 from zeus_ros.ros.graph import publisher_names
 from zeus_ros.ros.loop_spin import create_loop_subscription, LoopDeadline
 from zeus_ros.ros.pause import PauseServices
@@ -79,6 +85,8 @@ from zeus_ros.ros.util import (accept_integers_for_doubles, declare_double,
 
 if TYPE_CHECKING:
     from types import FrameType
+
+    import numpy as np
 
 # What rclpy declares on every node.
 RCLPY_PARAMETERS = ('use_sim_time', 'start_type_description_service')
@@ -141,10 +149,16 @@ class SimNode(Node):
 
     def _create_interfaces(self) -> None:
         self.joint_pub = self.create_publisher(JointState, '/joint_states', STATE_QOS)
-        self.step_pub = self.create_publisher(StepInfo, '/zeus/step', STATE_QOS)
+        self.publish_step_info = self._param('publish_step_info')
+        self.step_pub = self.create_publisher(StepInfo, '/zeus/step', STATE_QOS) \
+            if self.publish_step_info else None
         self.clock_pub = self.create_publisher(Clock, '/clock', STATE_QOS)
-        self.command_sub = create_loop_subscription(self, JointState, '/joint_commands',
-                                                    self.command_callback, STATE_QOS)
+        # Sawyer's hand deltas have no control range or gear: normalised commands only.
+        units = getattr(self.env, 'actuator_units', (None, None, None))
+        self.port = command_port(self, self.env.actuator_names, units_of(*units))
+        self.command_sub = create_loop_subscription(self, self.port.message_type,
+                                                    self.port.topic, self.command_callback,
+                                                    STATE_QOS)
         self.create_service(Reset, '~/reset', self.reset_callback, qos_profile=RESET_QOS)
         self.pause = PauseServices(self, self.stepper)   # ~/pause, ~/resume, ~/step
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -201,6 +215,10 @@ class SimNode(Node):
                 'model is compiled (a few ms; lockstep: the next step).',
                 floating_point_range=[FloatingPointRange(from_value=live.live_range[0],
                                                          to_value=live.live_range[1])]))
+        self.declare_parameter('publish_step_info', True, _describe(
+            'false: publish no /zeus/step, as a ros2_control robot publishes none '
+            '(read-only).', read_only=True))
+        declare_command_parameters(self)
         declare_thread_priority(self)
         declare_executor(self)
         unknown = unknown_overrides(self)
@@ -208,6 +226,8 @@ class SimNode(Node):
             raise UnknownParameters(f'unknown parameter {", ".join(unknown)} for '
                                     f'{self.spec.name}; {self._parameters_text()}')
         # The same checks as a live set (a declaration checks only type and range).
+        if not isinstance(self._param('publish_step_info'), bool):
+            raise ValueError('parameter publish_step_info: must be true or false')
         for name in (*self.spec.param_names, 'mode'):
             reason = self._parameter_problem(self.get_parameter(name))
             if reason is not None:
@@ -273,15 +293,30 @@ class SimNode(Node):
         return LoopDeadline(when, self.deadline_callback, lead)
 
     # -- stepping -------------------------------------------------------------
-    def command_callback(self, msg: JointState) -> None:
+    def command_callback(self, msg: JointState | Float64MultiArray) -> None:
         self.first_command.seen()
-        action, reason = parse_command(msg.name, msg.effort, self.env.actuator_names)
+        action, reason, stamp = self._parse(msg)
         with self.physics_lock:
-            outcome = self.stepper.on_command(stamp_ns(msg.header), action, time.monotonic())
+            outcome = self.stepper.on_command(stamp, action, time.monotonic())
         self._report(outcome)
         if reason is not None:
             self.warnings.warn('rejected', f'rejected command ({reason}); applying zero action '
                                    f'[{self.stepper.counters["rejected"]} rejected so far]')
+
+    def _parse(self, msg: JointState | Float64MultiArray
+               ) -> tuple[np.ndarray | None, str | None, int]:
+        """Return (action, why not, the stamp it answers) of a command of the declared type."""
+        if self.port.command_type == 'joint_state' and self.port.codec.units is None \
+                and list(self.port.codec.order) == sorted(self.port.codec.order):
+            # Today's form, as it always was read (names in any order, normalised).
+            action, reason = parse_command(msg.name, msg.effort, self.env.actuator_names)
+            return action, reason, stamp_ns(msg.header)
+        action, reason, stamp = self.port.action(msg)
+        if stamp is None:
+            # Unstamped (ros2_control's form): it answers the state awaited, or the newest.
+            stamp = self.stepper.awaited_ns
+            stamp = self.stepper.tick * self.stepper.dt_ns if stamp is None else stamp
+        return action, reason, stamp
 
     def deadline_callback(self) -> None:
         with self.physics_lock:
@@ -321,7 +356,8 @@ class SimNode(Node):
         clock = Clock()
         clock.clock = joint_state.header.stamp
         # The loop's two messages first; /clock is for tools and sim-time users.
-        self.step_pub.publish(step)
+        if self.publish_step_info:
+            self.step_pub.publish(step)
         self.joint_pub.publish(joint_state)
         self.clock_pub.publish(clock)
         self.pause.record(joint_state, step)

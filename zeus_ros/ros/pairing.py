@@ -246,10 +246,18 @@ class StateContextPairer:
     either stream may show the new clock first. A stream that restarts drops
     what it holds (the old clock's); a context is kept whatever was answered
     before, so the first context of a new clock waits for its state.
+
+    With `max_context_age_ns` > 0 (a robot, RMA's asynchronous adaptation) a
+    state need not wait for its own context: the newest state is answered at
+    once with the newest context stamped at most that much before it.
     """
 
-    def __init__(self, context_timeout: float, on_clock: ClockListener | None = None):
+    def __init__(self, context_timeout: float, on_clock: ClockListener | None = None,
+                 max_context_age_ns: int = 0):
         self.context_timeout = context_timeout
+        self.max_context_age_ns = max_context_age_ns
+        self._newest_context: tuple[int, object] | None = None
+        self.older_contexts = 0   # states answered with an older state's context
         self.on_clock = on_clock
         self.state_clock, self.context_clock = StampFollower(), StampFollower()
         self._states: dict[int, tuple[np.ndarray, float]] = {}
@@ -281,8 +289,10 @@ class StateContextPairer:
         event = self._observe(self.context_clock, stamp_ns, 'context')
         if event == RESTART:
             self._contexts.clear()
+            self._newest_context = None
         if event not in (DUPLICATE, OUTLIER):
             self._contexts[stamp_ns] = latent
+            self._newest_context = (stamp_ns, latent)
             self._trim()
         return event
 
@@ -299,10 +309,22 @@ class StateContextPairer:
         """Newest state whose context is in: (stamp, what `add_state` got, latent), or None."""
         complete = [s for s in self._states if s in self._contexts]
         if not complete:
-            return None
+            return self._ready_with_older_context()
         stamp = max(complete)
         observation = self._states[stamp][0]
         latent = self._contexts[stamp]
+        self._answered(stamp)
+        return stamp, observation, latent
+
+    def _ready_with_older_context(self) -> tuple[int, np.ndarray, np.ndarray] | None:
+        if self.max_context_age_ns <= 0 or not self._states or self._newest_context is None:
+            return None
+        stamp = max(self._states)
+        context_stamp, latent = self._newest_context
+        if not 0 <= stamp - context_stamp <= self.max_context_age_ns:
+            return None   # none yet, or too old: the state waits (then times out)
+        observation = self._states[stamp][0]
+        self.older_contexts += 1
         self._answered(stamp)
         return stamp, observation, latent
 

@@ -22,6 +22,7 @@ protocol's read-only property would hide an env's plain attribute).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable, Self, TYPE_CHECKING, TypeVar
 
 import numpy as np
@@ -41,6 +42,21 @@ class PreparedValues(Protocol):
 
     @property
     def values(self) -> Values: ...
+
+
+@dataclass(frozen=True)
+class ModelView:
+    """A bare MjModel as dm_control's Physics shows it: `ptr`."""
+
+    ptr: Any   # mujoco.MjModel (not imported here: this module stays MuJoCo-free)
+
+
+@dataclass(frozen=True)
+class PhysicsView:
+    """The part of a dm_control Physics the sim node's camera reads, for envs on raw MuJoCo."""
+
+    model: ModelView
+    data: Any   # mujoco.MjData
 
 
 @runtime_checkable

@@ -28,6 +28,7 @@ import numpy as np
 from sim_node.family_edits import family_model
 from sim_node.family_file import (ControlCost, FileFamilySpec, ForwardSpeed, FrictionEdit,
                                   Healthy, SiteDistance)
+from sim_node.family_env import ModelView, PhysicsView
 from sim_node.layout import check_action, StepResult
 from sim_node.model_copy import ModelWriter, structure_of
 
@@ -44,19 +45,6 @@ class PreparedFileValues:
     values: tuple[float, ...]
     model: mujoco.MjModel | None   # None: a friction-only swap, written directly
     assumes: tuple[float, ...]     # the non-friction values the direct write presumes
-
-
-@dataclass(frozen=True)
-class _ModelView:
-    ptr: mujoco.MjModel
-
-
-@dataclass(frozen=True)
-class PhysicsView:
-    """What the sim node's camera reads: `model.ptr`, `data`."""
-
-    model: _ModelView
-    data: mujoco.MjData
 
 
 class SuiteTask:
@@ -159,7 +147,7 @@ class FileEnv:
     def physics(self) -> PhysicsView:  # noqa: D102
         if self._suite is not None:
             return self._suite.physics
-        return PhysicsView(_ModelView(self.model), self.data)
+        return PhysicsView(ModelView(self.model), self.data)
 
     def joint_positions(self) -> np.ndarray:  # noqa: D102
         return self.data.qpos[self._qpos].copy()

@@ -52,6 +52,7 @@ import mujoco
 import numpy as np
 
 from sim_node.families import GOAL_FAMILIES, SAWYER_PEG
+from sim_node.family_env import ModelView, PhysicsView
 from sim_node.layout import check_action, ObservationLayout, StepResult
 
 if TYPE_CHECKING:
@@ -89,19 +90,6 @@ class PreparedGoal:
     """A checked goal, not yet in force (`SawyerPegEnv.prepare_values`; `FamilyEnv`'s)."""
 
     values: Goal
-
-
-@dataclass(frozen=True)
-class _ModelView:
-    ptr: mujoco.MjModel
-
-
-@dataclass(frozen=True)
-class PhysicsView:
-    """The part of a dm_control Physics the sim node's camera reads: `model.ptr`, `data`."""
-
-    model: _ModelView
-    data: mujoco.MjData
 
 
 @dataclass(frozen=True)
@@ -393,7 +381,7 @@ class SawyerPegEnv:
     @property
     def physics(self) -> PhysicsView:
         """The live model and data as the camera reads a Physics (the block moves in place)."""
-        return PhysicsView(_ModelView(self._model), self._data)
+        return PhysicsView(ModelView(self._model), self._data)
 
     # -- episode control --------------------------------------------------
     def reset(self, seed: int | None = None) -> np.ndarray:

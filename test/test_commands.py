@@ -73,6 +73,10 @@ def test_actuator_units_need_the_checkpoint_to_record_them():
 def test_only_a_context_free_checkpoint_runs_without_the_reward():
     assert reward_free_refusal('sac', 0, False, False) is None
     assert 'reward in its window rows' in reward_free_refusal('rma', 1, False, False)
+    # Trained with context_reward false, psi never reads the column: it runs reward-free.
+    assert reward_free_refusal('rma', 8, False, False, reads_reward=False) is None
+    assert 'true parameter' in reward_free_refusal('oracle', 1, True, False,
+                                                    reads_reward=False)
     assert 'true parameter' in reward_free_refusal('oracle', 1, True, False)
     assert 'observes the reward' in reward_free_refusal('sac', 0, False, True)
 

@@ -752,3 +752,26 @@ def test_an_old_flat_config_with_every_methods_keys_still_builds_each_method():
         ZeusConfig.from_dict({**zeus, 'context_input': 'bogus'})
     with pytest.raises(ValueError, match='unknown config keys'):
         ZeusConfig.from_dict({**zeus, 'no_such_key': 1})
+
+
+@pytest.mark.parametrize('method', ['rma', 'up-osi', 'zeus-id'])
+def test_a_context_trained_without_the_reward_ignores_its_column_bit_for_bit(method):
+    """context_reward=false: a NaN reward (a robot's window) gives the same latent (#49)."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    rows = torch.as_tensor(rng.normal(size=(3, K, ROW)), dtype=torch.float32)
+    mask = torch.ones(3, K, dtype=torch.bool)
+    unknown = rows.clone()
+    unknown[..., OBS + ACT] = float('nan')          # the reward column of concat(s, a, r, s')
+    for reads in (False, True):
+        agent = Agent(tiny_config(method, context_reward=reads), OBS, ACT)
+        psi = agent.method.psi
+        features = psi.features(rows)
+        psi.norm.observe(features.reshape(-1, features.shape[-1]))
+        known = agent.method.deployed_context(rows, mask, None)
+        blind = agent.method.deployed_context(unknown, mask, None)
+        assert torch.isfinite(known).all()
+        if reads:
+            assert not torch.isfinite(blind).all()   # it did read the reward
+        else:
+            assert torch.equal(known, blind)

@@ -444,7 +444,7 @@ CONFIG_LIMITS: dict[str, Between | None] = {
     **dict.fromkeys(('family', 'method', 'profile', 'aggregation', 'context_input',
                      'context_encoder', 'dynamics_loss', 'train_swap_direction',
                      'context_critic_grad', 'metric_normalise', 'reward_in_observation',
-                     'train_sampling', 'train_span', 'param_space', 'rma_latent',
+                     'train_sampling', 'train_span', 'param_space', 'rma_latent', 'context_reward',
                      'rma_asymmetric')),
     'context_length': Between(1, 10_000),
     **dict.fromkeys(('context_dim', 'context_hidden', 'feature_dim', 'encoder_hidden',
@@ -473,7 +473,7 @@ LATER_CONFIG_KEYS = frozenset({
     'method', 'context_input', 'context_encoder', 'context_critic_grad', 'metric_normalise',
     'id_weight', 'backward_weight', 'osi_warmup_updates', 'hyper_model_hidden',
     'reward_in_observation', 'train_swap_prob', 'train_swap_direction', 'train_sampling',
-    'train_span', 'param_space',
+    'train_span', 'param_space', 'context_reward',
     'rma_student_after_updates', 'rma_latent', 'rma_asymmetric'})
 
 

@@ -175,7 +175,8 @@ class ContextNode(Node):
         prior = self.model.reward_prior() if missing == 'training_mean' else None
         refusal = reward_free_refusal(self.model.method_name, self.model.context_dim,
                                       self.model.needs_true_param,
-                                      self.model.reward_in_observation, prior)
+                                      self.model.reward_in_observation, prior,
+                                      self.model.meta.config.get('context_reward', True))
         if refusal is not None:
             # The stand-in reward helps only a context whose one lack is the reward.
             only_reward = not (self.model.needs_true_param or self.model.reward_in_observation)

@@ -153,21 +153,22 @@ def make_codec(actuator_names: Sequence[str], joints: Sequence[str], units_mode:
 
 
 def reward_free_refusal(method: str, context_dim: int, needs_true_param: bool,
-                        reward_in_observation: bool, reward_prior: float | None = None
-                        ) -> str | None:
+                        reward_in_observation: bool, reward_prior: float | None = None,
+                        reads_reward: bool = True) -> str | None:
     """Why a checkpoint cannot run on a window built without StepInfo, or None.
 
     Such a window lacks the reward and the sim's true values. Every context
     encoder of this project reads the reward in its rows (concat(s, a, r, s')),
-    so only a checkpoint without a context (context_dim 0) runs reward-free,
-    unless a stand-in reward is given (`reward_prior`, psi's training mean:
+    unless trained not to (`context_reward` false: `reads_reward` False here),
+    so only such a checkpoint or one without a context (context_dim 0) runs
+    reward-free, unless a stand-in reward is given (`reward_prior`, psi's training mean:
     `missing_reward` training_mean, an approximation).
     """
     if needs_true_param:
         return f'{method} reads the true parameter values, which only StepInfo carries'
     if reward_in_observation:
         return f'{method} observes the reward, which only StepInfo carries'
-    if context_dim > 0 and reward_prior is None:
+    if context_dim > 0 and reads_reward and reward_prior is None:
         return (f"{method} reads the reward in its window rows (concat(s, a, r, s')), "
                 'which only StepInfo carries')
     return None

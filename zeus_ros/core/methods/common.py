@@ -51,6 +51,10 @@ class EncoderSettings(MethodSettings):
         'module).', choices=CONTEXT_ENCODERS)
     context_critic_grad: bool = setting(
         True, "Let the critic's TD loss train psi (zeus, not one of these, always does).")
+    context_reward: bool = setting(
+        True, 'Let psi read the reward column of its rows; false = it never does, so the '
+        'context can be computed on a robot that reports no reward (a ros2_control robot, '
+        'context_node action_source commands): the same context, bit for bit (#49).')
     id_weight: float = setting(
         0.0, 'Weight of the parameter-regression loss THROUGH psi (privileged supervision in '
         'training, as UP-OSI; 0 = the decoder reads a detached latent, a pure probe).')
@@ -106,12 +110,16 @@ class RunningStandardiser(nn.Module):
         return (x - self.mean) / (self.var.sqrt() + 1e-4)
 
 
-def transition_features(rows: torch.Tensor, obs_dim: int, delta: bool) -> torch.Tensor:
-    """Window rows concat(s, a, r, s') -> concat(s, a, r, s' - s) when `delta`."""
-    if not delta:
-        return rows
+def transition_features(rows: torch.Tensor, obs_dim: int, delta: bool,
+                        reward: bool = True) -> torch.Tensor:
+    """Window rows concat(s, a, r, s') -> concat(s, a, r, s' - s) when `delta`.
+
+    Without `reward` the r column is left out: never read, so an unknown reward
+    (NaN) changes nothing.
+    """
+    head = rows[..., :-obs_dim] if reward else rows[..., :-obs_dim - 1]
     s, s_next = rows[..., :obs_dim], rows[..., -obs_dim:]
-    return torch.cat([rows[..., :-obs_dim], s_next - s], dim=-1)
+    return torch.cat([head, s_next - s if delta else s_next], dim=-1)
 
 
 class StandardisedContextEncoder(nn.Module):
@@ -130,7 +138,9 @@ class StandardisedContextEncoder(nn.Module):
         super().__init__()
         self.obs_dim = obs_dim
         self.delta = settings.context_input == 'delta'
+        self.reward = settings.context_reward
         self.relational = settings.context_encoder == 'relational'
+        row_dim = row_dim if self.reward else row_dim - 1   # the features psi reads
         self.norm = RunningStandardiser(row_dim)
         if settings.context_encoder == 'temporal':
             self.encoder = TemporalConvEncoder(row_dim, out_dim or cfg.context_dim,
@@ -147,7 +157,7 @@ class StandardisedContextEncoder(nn.Module):
 
     def features(self, rows: torch.Tensor) -> torch.Tensor:
         """Return what psi reads of each row, before standardising."""
-        return transition_features(rows, self.obs_dim, self.delta)
+        return transition_features(rows, self.obs_dim, self.delta, self.reward)
 
     def window_pair(self, chain_rows: torch.Tensor, chain_mask: torch.Tensor,
                     grad: bool) -> tuple[torch.Tensor, torch.Tensor] | None:

@@ -102,6 +102,14 @@ def row(label: str, figures: list[SegmentFigures]) -> str:
             f'{cell([f.segment_return for f in figures], 0)} |')
 
 
+def write_table(out: Path, command: str, text: str, args: argparse.Namespace) -> None:
+    out.write_text(f'`{command}`\n\n{text}\n\nTell-apart: the norm of the gap between '
+                   f'the next observations under {args.low:g} and {args.wrong:g} '
+                   'from the same state and action, over the norm of a step '
+                   "(mean over the window's steps). Runs: "
+                   + ', '.join(f'`{p}`' for p in args.runs) + '\n')
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--runs', nargs='+', type=Path, required=True, help='checkpoint folders')
@@ -122,21 +130,16 @@ def main(argv=None) -> int:
         + [f'tell-apart, steps {a + 1}-{b}' for a, b in WINDOWS]
     lines = [f'| 1.0 -> H -> {args.low:g} | episodes | ' + ' | '.join(heads)
              + ' | flipped | segment return |', '|---|---|' + '---|' * (len(heads) + 2)]
+    command = 'PYTHONPATH=. OMP_NUM_THREADS=1 python research/analysis/friction_after_swap.py ' \
+        + ' '.join(map(str, sys.argv[1:] if argv is None else argv))
     for high in args.highs:
         figures = [segment_figures(m, high, args.low, args.wrong, seed)
                    for m in models for seed in range(args.episodes)]
         lines.append(row(f'H = {high:g}', figures))
         print(lines[-1], flush=True)
-    text = '\n'.join(lines)
-    command = 'PYTHONPATH=. OMP_NUM_THREADS=1 python research/analysis/friction_after_swap.py ' \
-        + ' '.join(map(str, sys.argv[1:] if argv is None else argv))
-    print(text)
-    if args.out:
-        args.out.write_text(f'`{command}`\n\n{text}\n\nTell-apart: the norm of the gap between '
-                            f'the next observations under {args.low:g} and {args.wrong:g} '
-                            'from the same state and action, over the norm of a step '
-                            "(mean over the window's steps). Runs: "
-                            + ', '.join(f'`{p}`' for p in args.runs) + '\n')
+        if args.out:   # after every row: a long run stopped early keeps what it measured
+            write_table(args.out, command, '\n'.join(lines), args)
+    print('\n'.join(lines))
     return 0
 
 

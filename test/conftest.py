@@ -156,8 +156,15 @@ _ROS_FIXTURES = frozenset({'spawn', 'ros_node', 'rclpy_context', 'small_checkpoi
 
 
 def pytest_collection_modifyitems(config, items):
-    """Mark each test `ros` or `unit` (`pytest -m unit` runs the ROS-free ones)."""
+    """Mark each test `ros` or `unit` (`pytest -m unit` runs the ROS-free ones).
+
+    An `alone` test (timing assertions) also joins one xdist group: a parallel
+    run that does not leave them out (`make test` runs them in a pass of their
+    own) at least runs them one after another, on one worker (--dist loadgroup).
+    """
     for item in items:
+        if item.get_closest_marker('alone') is not None:
+            item.add_marker(pytest.mark.xdist_group('alone'))
         if item.get_closest_marker('ros') is not None:
             continue
         uses = set(getattr(item, 'fixturenames', ()))

@@ -9,6 +9,7 @@ import sys
 
 from conftest import REPO
 import numpy as np
+import pytest
 from sim_driver import WALKER_WEIGHTS
 from zeus_ros.ros_tools.check_parity import describe, first_difference, Trace
 
@@ -19,6 +20,7 @@ def run_tool(*args, timeout=600):
                           capture_output=True, text=True, timeout=timeout, cwd=REPO)
 
 
+@pytest.mark.timeout(1200)   # two runs of the tool, its own wait 600 s each
 def test_the_shipped_weights_are_identical_through_ros_and_a_mismatch_is_found():
     same = run_tool('--steps', '40', '--seed', '2', '--value', '1.25')
     assert same.returncode == 0, same.stdout + same.stderr

@@ -20,7 +20,8 @@ from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.ros_tools.demo import check_episode, DemoFailure, loop_closed, RECORDED_TOPICS
 from zeus_ros.learning_tools.evaluate import run_episode
 
-pytestmark = pytest.mark.ros   # starts processes of its own
+# Starts processes of its own; a demo's own wait is 420 s.
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(600)]
 
 SCHEDULE = '0:1.0,333:0.4,666:1.7'
 

@@ -115,15 +115,43 @@ def spin_until(node, predicate, timeout: float, period: float = 0.02):
     return value
 
 
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """Return `build(directory)`, built once per test run even across xdist workers.
+
+    A session or module fixture is per process: under pytest-xdist each worker
+    that runs one of its tests would train its own copy (a minute of CPU each,
+    on two cores shared with the other workers). Here the first worker to ask
+    builds it in a directory all workers of the run share, under a file lock;
+    the others wait for it and use the same files. Only for what tests read and
+    never change (a trained checkpoint).
+    """
+    if os.environ.get('PYTEST_XDIST_WORKER') is None:    # a run in one process
+        return build(tmp_path_factory.mktemp(name))
+    from filelock import FileLock
+    # Each worker's base temp is <the run's temp>/popen-gwN: its parent is the run's.
+    shared = tmp_path_factory.getbasetemp().parent / 'built_once'
+    shared.mkdir(exist_ok=True)
+    done = shared / f'{name}.done'
+    with FileLock(str(shared / f'{name}.lock')):
+        if not done.exists():
+            directory = shared / name
+            shutil.rmtree(directory, ignore_errors=True)   # a build that failed half-way
+            directory.mkdir()
+            done.write_text(str(build(directory)))
+    return Path(done.read_text())
+
+
 @pytest.fixture(scope='session')
 def small_checkpoint(tmp_path_factory):
     """Train a small walker-walk-v0 checkpoint: a few hundred real training steps."""
-    out = tmp_path_factory.mktemp('train') / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
-                    '--family', 'walker-walk-v0',
-                    '--steps', '300', '--out', str(out), '--eval-every', '0',
-                    '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
-    return out / 'checkpoint'
+    def build(directory):
+        out = directory / 'run'
+        subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                        '--family', 'walker-walk-v0',
+                        '--steps', '300', '--out', str(out), '--eval-every', '0',
+                        '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
+        return out / 'checkpoint'
+    return built_once(tmp_path_factory, 'small_checkpoint', build)
 
 
 def train_tiny(out: Path, family: str, method: str, steps: int = 120) -> Path:
@@ -143,7 +171,9 @@ def tiny_checkpoints(tmp_path_factory, family: str):
 
     def get(method):
         if method not in made:
-            made[method] = train_tiny(tmp_path_factory.mktemp(method) / 'run', family, method)
+            made[method] = built_once(tmp_path_factory, f'tiny-{family}-{method}',
+                                      lambda directory: train_tiny(directory / 'run', family,
+                                                                   method))
         return made[method]
     return get
 

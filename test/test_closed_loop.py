@@ -1,6 +1,6 @@
 """The three nodes on real DDS are the trained agent: equal returns, faults survived."""
 
-from conftest import spin_until, tiny_checkpoints, train_tiny
+from conftest import built_once, spin_until, tiny_checkpoints, train_tiny
 import numpy as np
 import pytest
 from sim_driver import (assert_same_rewards, COLLECT_QOS, collect, episode_rewards, FAMILY,
@@ -137,7 +137,8 @@ def method_checkpoints(tmp_path_factory):
 @pytest.fixture(scope='session')
 def reward_observing_checkpoint(tmp_path_factory):
     """Train a tiny zeus-id checkpoint of cheetah-run-v1 (its observation ends with r)."""
-    return train_tiny(tmp_path_factory.mktemp('reward_obs') / 'run', 'cheetah-run-v1', 'zeus-id')
+    return built_once(tmp_path_factory, 'reward_obs', lambda directory: train_tiny(
+        directory / 'run', 'cheetah-run-v1', 'zeus-id'))
 
 
 def test_a_policy_that_observes_the_reward_runs_through_the_nodes_bit_exactly(

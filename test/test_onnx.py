@@ -5,7 +5,7 @@ import shutil
 import subprocess
 import sys
 
-from conftest import REPO
+from conftest import built_once, REPO
 import numpy as np
 import pytest
 from sim_driver import (assert_same_rewards, collect, episode_rewards, FAMILY,
@@ -74,15 +74,18 @@ def tiny_checkpoint(tmp_path_factory):
     def get(name):
         if name not in made:
             method, settings = TINY[name]
-            out = tmp_path_factory.mktemp(name) / 'run'
-            subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
-                            '--family', FAMILY,
-                            '--method', method, '--steps', '120', '--out', str(out),
-                            '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
-                            '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
-                            'batch_size_per_task=4', 'replay_capacity=2000', *settings],
-                           check=True, cwd=REPO, capture_output=True)
-            made[name] = out / 'checkpoint'
+
+            def build(directory):
+                out = directory / 'run'
+                subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                                '--family', FAMILY,
+                                '--method', method, '--steps', '120', '--out', str(out),
+                                '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
+                                '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
+                                'batch_size_per_task=4', 'replay_capacity=2000', *settings],
+                               check=True, cwd=REPO, capture_output=True)
+                return out / 'checkpoint'
+            made[name] = built_once(tmp_path_factory, f'onnx-{name}', build)
         return made[name]
     return get
 

@@ -1,4 +1,4 @@
-"""After a swap down from high friction: is the friction hidden, or misread?
+"""After a swap down from high friction: whether the friction is hidden or misread.
 
 Issue #47: after a segment above the train range the shipped cheetah's
 friction estimate stays high (a true 0.57 reads ~0.9 for hundreds of steps),
@@ -93,7 +93,8 @@ def segment_figures(model: InferenceModel, high: float, low: float, wrong: float
 
 def row(label: str, figures: list[SegmentFigures]) -> str:
     def cell(values: list[float], digits: int) -> str:
-        return f'{np.mean(values):.{digits}f} +- {np.std(values) / np.sqrt(len(values)):.{digits}f}'
+        error = np.std(values) / np.sqrt(len(values))
+        return f'{np.mean(values):.{digits}f} +- {error:.{digits}f}'
     decoded = [cell([f.decoded[i] for f in figures], 2) for i in range(len(WINDOWS))]
     tell = [cell([f.tell_apart[i] for f in figures], 3) for i in range(len(WINDOWS))]
     return (f'| {label} | {len(figures)} | ' + ' | '.join(decoded) + ' | ' + ' | '.join(tell)
@@ -134,7 +135,7 @@ def main(argv=None) -> int:
         args.out.write_text(f'`{command}`\n\n{text}\n\nTell-apart: the norm of the gap between '
                             f'the next observations under {args.low:g} and {args.wrong:g} '
                             'from the same state and action, over the norm of a step '
-                            '(mean over the window\'s steps). Runs: '
+                            "(mean over the window's steps). Runs: "
                             + ', '.join(f'`{p}`' for p in args.runs) + '\n')
     return 0
 

@@ -208,6 +208,7 @@ def demo_command(out, *extra):
             '--out', out, *extra]
 
 
+@pytest.mark.ros   # two demos, each its three nodes (no fixture of ours says so)
 @pytest.mark.timeout(600)   # its own wait for the demos is 400 s
 def test_two_demos_at_once_both_give_the_deterministic_episode(tmp_path):
     expected = run_episode(InferenceModel.load(WALKER_WEIGHTS), FAMILY, 1.0, 0,

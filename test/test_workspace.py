@@ -32,6 +32,7 @@ def test_ament_index_lists_both_packages():
 # Alone: the build rewrites install/, which the nodes of tests running beside it
 # would be started from (a half-written file is a failed import there).
 @pytest.mark.alone
+@pytest.mark.ros   # a colcon build of the ROS packages: not a unit test's half-second
 def test_the_build_prints_no_stderr_even_where_bytecode_is_off():
     # PYTHONDONTWRITEBYTECODE (set in some shells and containers) made setuptools
     # warn on stderr at every build: colcon's "1 package had stderr output" (#38.5).

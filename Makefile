@@ -19,7 +19,7 @@ setup:
 # other. Most ROS tests wait (discovery, a node's start, a loop running), so more
 # workers than this machine's 2 cores pay: see "Test suite" in
 # docs/pages/benchmarks.md for the measurement behind the default.
-TEST_WORKERS ?= 3
+TEST_WORKERS ?= 4
 # --dist loadgroup: tests in one xdist_group share a worker (conftest.py).
 XDIST := -n $(TEST_WORKERS) --dist loadgroup
 # The `alone` tests (wall-clock timing assertions, setup.cfg) run first, one at a

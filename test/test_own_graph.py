@@ -68,6 +68,9 @@ def test_this_pytest_process_holds_the_domain_its_nodes_inherit(spawn):
     assert holders == [os.getpid()], (domain, holders, os.getpid())
     child = spawn([sys.executable, '-c', 'import os; print(os.environ["ROS_DOMAIN_ID"])'])
     assert child.proc.wait(30) == 0 and child.output().split() == [domain]
+
+
+def test_foreign_publishers_names_each_topic_not_the_expected_node_alone():
     expected = {'/joint_states': '/sim_node', '/joint_commands': '/zeus_demo'}
     assert foreign_publishers({'/joint_states': ['/sim_node'], '/joint_commands': []},
                               expected) == []   # not published yet: the start-up waits

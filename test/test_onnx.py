@@ -91,6 +91,7 @@ def tiny_checkpoint(tmp_path_factory):
 
 
 @pytest.mark.parametrize('name', sorted(TINY))
+@pytest.mark.ros   # starts processes (the trainer, the export or bench command): not a unit test
 def test_every_method_and_encoder_exports(tmp_path, tiny_checkpoint, name):
     weights = tiny_checkpoint(name)
     torch_model = InferenceModel.load(weights)
@@ -176,6 +177,7 @@ def test_a_corrupt_graph_is_refused(tmp_path):
         OnnxInferenceModel.load(out)
 
 
+@pytest.mark.ros   # starts processes (the trainer, the export or bench command): not a unit test
 def test_the_export_command_writes_and_checks_an_export(tmp_path):
     out = tmp_path / 'export'
     done = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.export_onnx',
@@ -231,6 +233,7 @@ def test_onnx_controllers_run_the_in_process_onnx_episode(spawn, ros_node, tmp_p
         <= 0.1 * abs(torch_run.episode_return)
 
 
+@pytest.mark.ros   # starts processes (the trainer, the export or bench command): not a unit test
 def test_the_inference_bench_times_both_backends_on_the_same_steps(tmp_path):
     """A pass of research/benchmarks/bench_inference.py small enough to be no measurement."""
     out = tmp_path / 'figures.json'

@@ -115,15 +115,43 @@ def spin_until(node, predicate, timeout: float, period: float = 0.02):
     return value
 
 
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """Return `build(directory)`, built once per test run even across xdist workers.
+
+    A session or module fixture is per process: under pytest-xdist each worker
+    that runs one of its tests would train its own copy (a minute of CPU each,
+    on two cores shared with the other workers). Here the first worker to ask
+    builds it in a directory all workers of the run share, under a file lock;
+    the others wait for it and use the same files. Only for what tests read and
+    never change (a trained checkpoint).
+    """
+    if os.environ.get('PYTEST_XDIST_WORKER') is None:    # a run in one process
+        return build(tmp_path_factory.mktemp(name))
+    from filelock import FileLock
+    # Each worker's base temp is <the run's temp>/popen-gwN: its parent is the run's.
+    shared = tmp_path_factory.getbasetemp().parent / 'built_once'
+    shared.mkdir(exist_ok=True)
+    done = shared / f'{name}.done'
+    with FileLock(str(shared / f'{name}.lock')):
+        if not done.exists():
+            directory = shared / name
+            shutil.rmtree(directory, ignore_errors=True)   # a build that failed half-way
+            directory.mkdir()
+            done.write_text(str(build(directory)))
+    return Path(done.read_text())
+
+
 @pytest.fixture(scope='session')
 def small_checkpoint(tmp_path_factory):
     """Train a small walker-walk-v0 checkpoint: a few hundred real training steps."""
-    out = tmp_path_factory.mktemp('train') / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
-                    '--family', 'walker-walk-v0',
-                    '--steps', '300', '--out', str(out), '--eval-every', '0',
-                    '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
-    return out / 'checkpoint'
+    def build(directory):
+        out = directory / 'run'
+        subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                        '--family', 'walker-walk-v0',
+                        '--steps', '300', '--out', str(out), '--eval-every', '0',
+                        '--checkpoint-every', '300', '--quiet'], check=True, cwd=REPO)
+        return out / 'checkpoint'
+    return built_once(tmp_path_factory, 'small_checkpoint', build)
 
 
 def train_tiny(out: Path, family: str, method: str, steps: int = 120) -> Path:
@@ -143,7 +171,9 @@ def tiny_checkpoints(tmp_path_factory, family: str):
 
     def get(method):
         if method not in made:
-            made[method] = train_tiny(tmp_path_factory.mktemp(method) / 'run', family, method)
+            made[method] = built_once(tmp_path_factory, f'tiny-{family}-{method}',
+                                      lambda directory: train_tiny(directory / 'run', family,
+                                                                   method))
         return made[method]
     return get
 
@@ -155,13 +185,69 @@ def tiny_checkpoints(tmp_path_factory, family: str):
 _ROS_FIXTURES = frozenset({'spawn', 'ros_node', 'rclpy_context', 'small_checkpoint'})
 
 
+# `make test-quick`: beside the unit tests, one test per module that starts real
+# processes, each among the module's quicker ones (a few seconds to half a minute
+# on a quiet machine), so that every module runs once through real nodes, DDS
+# and the tools' entry points in a few minutes. Left out: test_ray_cluster.py and
+# test_sweep.py, whose one real-process test each runs a whole sweep (minutes).
+QUICK = (
+    'test_adaptation.py::test_sac_report_has_no_context_sections',
+    'test_camera.py::test_camera_node_publishes_frames_over_dds_at_the_rate',
+    'test_check_parity.py::test_the_shipped_weights_are_identical_through_ros_and_a_mismatch_is_found',
+    'test_closed_loop.py::test_ros_episode_return_equals_in_process_eval[shipped_walker_weights]',
+    'test_composed.py::test_a_signal_stops_all_three_cleanly[2]',
+    'test_controller_robustness.py::test_stray_joint_states_are_ignored_and_control_goes_on',
+    'test_demo.py::test_the_readme_figures_are_what_make_demo_prints',
+    'test_discovery.py::test_a_node_starts_with_the_profile_unless_the_user_names_one',
+    'test_executor.py::test_the_events_executor_serves_timers_and_services_and_stops_cleanly',
+    'test_foxglove.py::test_a_real_client_receives_every_channel_with_its_values',
+    'test_interfaces.py::test_reset_service_round_trip',
+    'test_metadata_fuzz.py::test_controllers_started_on_a_bad_file_exit_with_one_line',
+    'test_onnx.py::test_onnx_controllers_run_the_in_process_onnx_episode',
+    'test_orphans.py::test_a_second_sim_node_on_the_graph_is_refused',
+    'test_own_graph.py::test_a_clean_lockstep_start_logs_no_warning',
+    'test_pause_step.py::test_pause_stops_the_sim_step_takes_exactly_n_and_resume_runs_on[lockstep]',
+    'test_recording.py::test_recorder_stores_what_the_publishers_offer',
+    'test_recording_video.py::test_video_shows_the_robot_with_true_and_decoded_parameter',
+    'test_ros_robustness_shutdown.py::test_a_running_node_stops_quietly_on_every_signal_pattern[sim_node]',
+    'test_ros_robustness_sim.py::test_an_empty_reset_request_keeps_the_stream_and_names_its_episode',
+    'test_sawyer_node.py::test_lockstep_with_live_goal_swaps_equals_the_in_process_episode',
+    'test_set_param.py::test_a_live_swap_and_a_refusal_through_a_running_sim',
+    'test_sim_node.py::test_live_friction_swap_is_continuous_and_reported',
+    'test_soak.py::test_a_stop_signal_ends_the_soak_and_its_nodes',
+    'test_swap_live.py::test_lockstep_queues_swaps_until_its_steps_and_a_reset_value_supersedes_them',
+    'test_swap_services.py::test_200_concurrent_parameter_sets_are_all_answered',
+    'test_workspace.py::test_config_yaml_is_what_the_sim_node_runs_with',
+    'test_zero_shot_swap.py::test_live_swap_moves_latent_and_estimate[cheetah-torso-length]',
+)
+
+
 def pytest_collection_modifyitems(config, items):
-    """Mark each test `ros` or `unit` (`pytest -m unit` runs the ROS-free ones)."""
+    """Mark each test `ros` or `unit` (`pytest -m unit` runs the ROS-free ones).
+
+    An `alone` test (timing assertions) also joins one xdist group: a parallel
+    run that does not leave them out (`make test` runs them in a pass of their
+    own) at least runs them one after another, on one worker (--dist loadgroup).
+    """
+    quick = {f'test/{name}' for name in QUICK}
     for item in items:
+        if item.nodeid in quick:
+            item.add_marker('quick')
+            quick.discard(item.nodeid)
+        if item.get_closest_marker('alone') is not None:
+            item.add_marker(pytest.mark.xdist_group('alone'))
         if item.get_closest_marker('ros') is not None:
             continue
         uses = set(getattr(item, 'fixturenames', ()))
         item.add_marker('ros' if uses & _ROS_FIXTURES else 'unit')
+    # A renamed test would leave its module out of `make test-quick` unnoticed:
+    # where whole modules were collected, each QUICK name must have been found.
+    whole = not (config.getoption('keyword') or config.getoption('deselect')
+                 or any('::' in arg for arg in config.args))
+    collected = {item.nodeid.split('::')[0] for item in items}
+    missing = sorted(name for name in quick if name.split('::')[0] in collected)
+    if whole and missing:
+        raise pytest.UsageError(f'conftest.QUICK names tests that do not exist: {missing}')
 
 
 def _stack_dump(pid: int, label: str) -> str:

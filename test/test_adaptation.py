@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from conftest import built_once
 import numpy as np
 import pytest
 
@@ -24,13 +25,16 @@ QUICK = ReportConfig(episodes=1, max_steps=40, swap_step=20, swap_steps=40)
 
 
 def train_tiny(tmp_path_factory, method, family=FAMILY):
-    out = tmp_path_factory.mktemp(method) / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train', '--family', family,
-                    '--method', method, '--steps', '150', '--out', str(out), '--eval-every', '0',
-                    '--checkpoint-every', '150', '--quiet', '--set', 'init_steps=100',
-                    'hidden_dim=32', 'batch_size_per_task=4', 'replay_capacity=2000',
-                    'context_length=5'], check=True, cwd=REPO, capture_output=True)
-    return out / 'checkpoint'
+    def build(directory):
+        out = directory / 'run'
+        subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train', '--family',
+                        family, '--method', method, '--steps', '150', '--out', str(out),
+                        '--eval-every', '0', '--checkpoint-every', '150', '--quiet',
+                        '--set', 'init_steps=100', 'hidden_dim=32', 'batch_size_per_task=4',
+                        'replay_capacity=2000', 'context_length=5'],
+                       check=True, cwd=REPO, capture_output=True)
+        return out / 'checkpoint'
+    return built_once(tmp_path_factory, f'adaptation-{family}-{method}', build)
 
 
 @pytest.fixture(scope='module')

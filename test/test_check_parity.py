@@ -9,6 +9,7 @@ import sys
 
 from conftest import REPO
 import numpy as np
+import pytest
 from sim_driver import WALKER_WEIGHTS
 from zeus_ros.ros_tools.check_parity import describe, first_difference, Trace
 
@@ -19,6 +20,8 @@ def run_tool(*args, timeout=600):
                           capture_output=True, text=True, timeout=timeout, cwd=REPO)
 
 
+@pytest.mark.ros   # the tool starts the three nodes (no fixture of ours says so)
+@pytest.mark.timeout(1200)   # two runs of the tool, its own wait 600 s each
 def test_the_shipped_weights_are_identical_through_ros_and_a_mismatch_is_found():
     same = run_tool('--steps', '40', '--seed', '2', '--value', '1.25')
     assert same.returncode == 0, same.stdout + same.stderr
@@ -29,6 +32,7 @@ def test_the_shipped_weights_are_identical_through_ros_and_a_mismatch_is_found()
     assert 'first difference at step 0: observation' in other.stdout
 
 
+@pytest.mark.ros   # starts the tool (rclpy, torch) three times: seconds, not unit speed
 def test_bad_arguments_are_refused_with_exit_2():
     for args, message in ((('--steps', '0'), '--steps must be in [1, 1000]'),
                           (('--value', '9'), 'friction=9.0 is outside the allowed range')):

@@ -1,6 +1,6 @@
 """The three nodes on real DDS are the trained agent: equal returns, faults survived."""
 
-from conftest import spin_until, tiny_checkpoints, train_tiny
+from conftest import built_once, spin_until, tiny_checkpoints, train_tiny
 import numpy as np
 import pytest
 from sim_driver import (assert_same_rewards, COLLECT_QOS, collect, episode_rewards, FAMILY,
@@ -13,9 +13,12 @@ from zeus_ros.deploy.inference import InferenceModel
 
 
 @pytest.fixture
-def loop(spawn, ros_node, small_checkpoint):
-    def start(nodes=('sim_node', 'context_node', 'policy_node'), weights=small_checkpoint,
-              **sim_params):
+def loop(spawn, ros_node, request):
+    def start(nodes=('sim_node', 'context_node', 'policy_node'), weights=None, **sim_params):
+        # small_checkpoint only when asked for: a test of other weights need not
+        # wait for its training (a minute beside other work) when run on its own.
+        if weights is None:
+            weights = request.getfixturevalue('small_checkpoint')
         procs = {}
         # A generous command timeout: a loaded CI machine must not make the sim
         # step on its own (a zero action would break the equality test).
@@ -31,8 +34,9 @@ def loop(spawn, ros_node, small_checkpoint):
 
 
 @pytest.mark.parametrize('which', ['small_checkpoint', 'shipped_walker_weights'])
-def test_ros_episode_return_equals_in_process_eval(loop, ros_node, small_checkpoint, which):
-    weights = small_checkpoint if which == 'small_checkpoint' else WALKER_WEIGHTS
+def test_ros_episode_return_equals_in_process_eval(loop, ros_node, request, which):
+    weights = (request.getfixturevalue('small_checkpoint') if which == 'small_checkpoint'
+               else WALKER_WEIGHTS)
     seed, friction = 5, 1.25
     expected = run_episode(InferenceModel.load(weights), FAMILY, friction, seed)
     rewards = ros_episode_rewards(loop, ros_node, weights, seed, friction)
@@ -137,7 +141,8 @@ def method_checkpoints(tmp_path_factory):
 @pytest.fixture(scope='session')
 def reward_observing_checkpoint(tmp_path_factory):
     """Train a tiny zeus-id checkpoint of cheetah-run-v1 (its observation ends with r)."""
-    return train_tiny(tmp_path_factory.mktemp('reward_obs') / 'run', 'cheetah-run-v1', 'zeus-id')
+    return built_once(tmp_path_factory, 'reward_obs', lambda directory: train_tiny(
+        directory / 'run', 'cheetah-run-v1', 'zeus-id'))
 
 
 def test_a_policy_that_observes_the_reward_runs_through_the_nodes_bit_exactly(

@@ -101,6 +101,7 @@ def received_since(messages, start: int) -> str:
     return text
 
 
+@pytest.mark.alone   # bounds the wall-clock time control takes to come back
 def test_control_comes_back_after_the_sim_is_killed_and_restarted(spawn, ros_node):
     stepped = SentAfter(ros_node, StepInfo, '/zeus/step', COLLECT_QOS)
     issued = SentAfter(ros_node, JointState, '/joint_commands', COLLECT_QOS)

@@ -9,7 +9,7 @@ import re
 import subprocess
 import sys
 
-from conftest import REPO
+from conftest import built_once, REPO
 from PIL import Image
 import numpy as np
 import pytest
@@ -20,7 +20,8 @@ from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.ros_tools.demo import check_episode, DemoFailure, loop_closed, RECORDED_TOPICS
 from zeus_ros.learning_tools.evaluate import run_episode
 
-pytestmark = pytest.mark.ros   # starts processes of its own
+# Starts processes of its own; a demo's own wait is 420 s.
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(600)]
 
 SCHEDULE = '0:1.0,333:0.4,666:1.7'
 
@@ -28,13 +29,15 @@ SCHEDULE = '0:1.0,333:0.4,666:1.7'
 @pytest.fixture(scope='session')
 def sac_checkpoint(tmp_path_factory):
     """Train a tiny context-free (method sac) walker-walk-v0 checkpoint."""
-    out = tmp_path_factory.mktemp('train_sac') / 'run'
-    subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
-                    '--family', 'walker-walk-v0',
-                    '--method', 'sac', '--steps', '300', '--out', str(out), '--eval-every', '0',
-                    '--set', 'init_steps=100', 'hidden_dim=32', '--quiet'],
-                   check=True, cwd=REPO)
-    return out / 'checkpoint'
+    def build(directory):
+        out = directory / 'run'
+        subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                        '--family', 'walker-walk-v0',
+                        '--method', 'sac', '--steps', '300', '--out', str(out),
+                        '--eval-every', '0', '--set', 'init_steps=100', 'hidden_dim=32',
+                        '--quiet'], check=True, cwd=REPO)
+        return out / 'checkpoint'
+    return built_once(tmp_path_factory, 'train_sac', build)
 
 
 def run_demo(*args, timeout=420):

@@ -14,6 +14,7 @@ what was loaded.
 
 import ast
 from pathlib import Path
+import shutil
 import subprocess
 import sys
 
@@ -57,8 +58,8 @@ SIMULATION_PURE = ('sim_node.families', 'sim_node.family_file', 'sim_node.layout
 PLUMBING_THAT_RENDERS = {'zeus_ros.ros.camera': ('sim_node.camera',)}
 
 
-def module_name(path: Path) -> str:
-    rel = path.relative_to(REPO).with_suffix('')
+def module_name(path: Path, root: Path = REPO) -> str:
+    rel = path.relative_to(root).with_suffix('')
     parts = list(rel.parts)
     if parts[-1] == '__init__':
         parts = parts[:-1]
@@ -116,9 +117,9 @@ def imports_of(text: str, module: str = '', is_package: bool = False) -> set[str
     return {name for name in found if name}
 
 
-def sources():
+def sources(root: Path = REPO):
     for package in ('sim_node', 'zeus_ros'):
-        yield from sorted((REPO / package).rglob('*.py'))
+        yield from sorted((root / package).rglob('*.py'))
 
 
 def check_module(module: str, text: str, is_package: bool = False) -> list[str]:
@@ -156,10 +157,11 @@ def _import_problem(module, layer, allowed, forbidden, imported) -> str | None:
     return f'imports {imported} ({target})'
 
 
-def violations() -> list[str]:
+def violations(root: Path = REPO) -> list[str]:
     found = []
-    for path in sources():
-        found += check_module(module_name(path), path.read_text(), path.name == '__init__.py')
+    for path in sources(root):
+        found += check_module(module_name(path, root), path.read_text(),
+                              path.name == '__init__.py')
     return found
 
 
@@ -167,18 +169,24 @@ def test_imports_point_one_way():
     assert violations() == []
 
 
-def with_probe(path, text: str, check):
-    """Run `check()` with a probe module written at `path`; the probe is removed after."""
-    path.write_text(text)
-    try:
-        return check()
-    finally:
-        path.unlink()
+def with_probe(tmp_path, relative: str, text: str, check):
+    """Return `check(root)` on a copy of the product's sources with a probe module added.
+
+    A copy, not the checkout: a probe written into the checkout is seen, while
+    it exists, by every test that reads the sources (the import rules, ruff),
+    and under pytest-xdist those run at the same moment in other workers.
+    """
+    root = tmp_path / 'checkout'
+    for folder in PRODUCT:
+        shutil.copytree(REPO / folder, root / folder,
+                        ignore=shutil.ignore_patterns('__pycache__'))
+    (root / relative).write_text(text)
+    return check(root)
 
 
-def test_the_rule_catches_a_reverse_import(tmp_path, monkeypatch):
+def test_the_rule_catches_a_reverse_import(tmp_path):
     """A learning-core module importing the simulation or a node is reported."""
-    found = with_probe(REPO / 'zeus_ros' / 'core' / '_layer_probe.py',
+    found = with_probe(tmp_path, 'zeus_ros/core/_layer_probe.py',
                        'from sim_node.env import ParamEnv\nimport zeus_ros.nodes.context_node\n',
                        violations)
     assert any('_layer_probe' in v and 'sim_node.env' in v for v in found), found
@@ -305,12 +313,12 @@ def _code_strings(tree: ast.AST) -> list[str]:
             and isinstance(node.value, str) and id(node) not in docstrings]
 
 
-def research_uses() -> list[str]:
+def research_uses(root: Path = REPO) -> list[str]:
     """Return where product files import a research script or name research/ in code."""
     scripts = {'research'} | {path.stem for path in RESEARCH.rglob('*.py')}
     found = []
-    for path in (p for folder in PRODUCT for p in sorted((REPO / folder).rglob('*.py'))):
-        rel = path.relative_to(REPO)
+    for path in (p for folder in PRODUCT for p in sorted((root / folder).rglob('*.py'))):
+        rel = path.relative_to(root)
         found += [f'{rel} imports {name}' for name in sorted(imports_of(path.read_text()))
                   if name.split('.')[0] in scripts]
         found += [f'{rel} names {text!r}' for text in _code_strings(ast.parse(path.read_text()))
@@ -328,8 +336,8 @@ def test_research_is_not_packaged():
     assert 'research' not in (REPO / 'setup.py').read_text()
 
 
-def test_the_research_rule_catches_an_import_and_a_path():
-    found = with_probe(REPO / 'zeus_ros' / '_research_probe.py',
+def test_the_research_rule_catches_an_import_and_a_path(tmp_path):
+    found = with_probe(tmp_path, 'zeus_ros/_research_probe.py',
                        "import sys\nsys.path.insert(0, 'research/analysis')\n"
                        'from summarize_runs import mean_se\n', research_uses)
     assert any('_research_probe' in v and 'summarize_runs' in v for v in found), found

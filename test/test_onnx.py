@@ -5,7 +5,7 @@ import shutil
 import subprocess
 import sys
 
-from conftest import REPO
+from conftest import built_once, REPO
 import numpy as np
 import pytest
 from sim_driver import (assert_same_rewards, collect, episode_rewards, FAMILY,
@@ -74,20 +74,24 @@ def tiny_checkpoint(tmp_path_factory):
     def get(name):
         if name not in made:
             method, settings = TINY[name]
-            out = tmp_path_factory.mktemp(name) / 'run'
-            subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
-                            '--family', FAMILY,
-                            '--method', method, '--steps', '120', '--out', str(out),
-                            '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
-                            '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
-                            'batch_size_per_task=4', 'replay_capacity=2000', *settings],
-                           check=True, cwd=REPO, capture_output=True)
-            made[name] = out / 'checkpoint'
+
+            def build(directory):
+                out = directory / 'run'
+                subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.train',
+                                '--family', FAMILY,
+                                '--method', method, '--steps', '120', '--out', str(out),
+                                '--eval-every', '0', '--checkpoint-every', '120', '--quiet',
+                                '--set', 'init_steps=100', 'hidden_dim=32', 'num_threads=1',
+                                'batch_size_per_task=4', 'replay_capacity=2000', *settings],
+                               check=True, cwd=REPO, capture_output=True)
+                return out / 'checkpoint'
+            made[name] = built_once(tmp_path_factory, f'onnx-{name}', build)
         return made[name]
     return get
 
 
 @pytest.mark.parametrize('name', sorted(TINY))
+@pytest.mark.ros   # starts processes (the trainer, the export or bench command): not a unit test
 def test_every_method_and_encoder_exports(tmp_path, tiny_checkpoint, name):
     weights = tiny_checkpoint(name)
     torch_model = InferenceModel.load(weights)
@@ -173,6 +177,7 @@ def test_a_corrupt_graph_is_refused(tmp_path):
         OnnxInferenceModel.load(out)
 
 
+@pytest.mark.ros   # starts processes (the trainer, the export or bench command): not a unit test
 def test_the_export_command_writes_and_checks_an_export(tmp_path):
     out = tmp_path / 'export'
     done = subprocess.run([sys.executable, '-m', 'zeus_ros.learning_tools.export_onnx',
@@ -228,6 +233,7 @@ def test_onnx_controllers_run_the_in_process_onnx_episode(spawn, ros_node, tmp_p
         <= 0.1 * abs(torch_run.episode_return)
 
 
+@pytest.mark.ros   # starts processes (the trainer, the export or bench command): not a unit test
 def test_the_inference_bench_times_both_backends_on_the_same_steps(tmp_path):
     """A pass of research/benchmarks/bench_inference.py small enough to be no measurement."""
     out = tmp_path / 'figures.json'

@@ -18,7 +18,8 @@ from zeus_ros.ros.protocol import AchievedRealTimeFactor, command_problem
 from zeus_msgs.msg import StepInfo
 from zeus_ros.deploy.inference import InferenceModel
 from zeus_ros.learning_tools.evaluate import run_episode
-from zeus_ros.ros.graph import claim_free_domain, foreign_publishers, UNKNOWN_NODE
+from zeus_ros.ros.graph import (claim_free_domain, foreign_publishers, LOCK_PATTERN,
+                                UNKNOWN_NODE)
 from zeus_ros.ros.util import FirstContact, ThrottledWarnings
 
 
@@ -45,6 +46,28 @@ def test_claim_free_domain_skips_ids_held_elsewhere(tmp_path):
         holder.kill()
         holder.wait()
     assert claim_free_domain(range(3), pattern).domain_id == second.domain_id
+
+
+
+def test_this_pytest_process_holds_the_domain_its_nodes_inherit(spawn):
+    """Each pytest process (each xdist worker of `make test`) talks on a domain it holds.
+
+    conftest claims one at import, in every worker: another worker, or another
+    checkout's run, cannot claim it while this one lives, and a node a test
+    starts inherits it. Were the claim made once in the controller, the workers
+    would share one domain and hear each other's loops.
+    """
+    domain = os.environ['ROS_DOMAIN_ID']
+    # The kernel's lock table names the process that took the lock: this one,
+    # not the xdist controller (whose claim the workers' environment starts with).
+    lock = os.stat(LOCK_PATTERN.format(domain))
+    where = f'{os.major(lock.st_dev):02x}:{os.minor(lock.st_dev):02x}:{lock.st_ino}'
+    with open('/proc/locks') as table:
+        rows = [line.split() for line in table]
+    holders = [int(row[4]) for row in rows if row[1] == 'FLOCK' and row[5] == where]
+    assert holders == [os.getpid()], (domain, holders, os.getpid())
+    child = spawn([sys.executable, '-c', 'import os; print(os.environ["ROS_DOMAIN_ID"])'])
+    assert child.proc.wait(30) == 0 and child.output().split() == [domain]
 
 
 def test_foreign_publishers_names_each_topic_not_the_expected_node_alone():
@@ -136,6 +159,7 @@ def test_a_clean_lockstep_start_logs_no_warning(spawn, ros_node):
         assert 'WARN' not in proc.output(), proc.output()
 
 
+@pytest.mark.alone   # bounds the achieved real-time factor
 def test_the_sim_reports_its_achieved_real_time_factor_in_both_modes(spawn, ros_node):
     statuses = sim_statuses(ros_node)
     start_node(spawn, 'sim_node', {'family': FAMILY, 'mode': 'realtime',
@@ -187,6 +211,8 @@ def demo_command(out, *extra):
             '--out', out, *extra]
 
 
+@pytest.mark.ros   # two demos, each its three nodes (no fixture of ours says so)
+@pytest.mark.timeout(600)   # its own wait for the demos is 400 s
 def test_two_demos_at_once_both_give_the_deterministic_episode(tmp_path):
     expected = run_episode(InferenceModel.load(WALKER_WEIGHTS), FAMILY, 1.0, 0,
                            swap_schedule={29: 0.4}).rewards[:SHORT['steps']]

@@ -44,6 +44,7 @@ def test_the_readme_gives_exactly_the_cluster_commands_the_script_runs():
     assert any(line.startswith('export RAY_AUTH_MODE=token ') for line in commands)
 
 
+@pytest.mark.timeout(900)   # its own wait for the sweep is 600 s
 def test_two_node_loopback_cluster_with_token_auth_runs_a_sweep_that_survives_its_driver(
         tmp_path):
     work = tmp_path / 'cluster'

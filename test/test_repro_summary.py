@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 ANALYSIS = REPO / 'research' / 'analysis'
@@ -23,6 +24,7 @@ def _report(folder: Path, train: float, interp: float, r2: float | None,
     (folder / 'adaptation.json').write_text(json.dumps(report))
 
 
+@pytest.mark.ros   # starts the summary script: a process, not a unit test
 def test_groups_seeds_and_gives_mean_and_standard_error(tmp_path):
     _report(tmp_path / 'cv1-zeus-s1', -500.0, -600.0, 0.9)
     _report(tmp_path / 'cv1-zeus-s2', -700.0, -800.0, 0.7)
@@ -47,6 +49,7 @@ def _summary(folder: Path) -> str:
                           env=os.environ | {'PYTHONPATH': str(REPO)}).stdout
 
 
+@pytest.mark.ros   # starts the summary script: a process, not a unit test
 def test_success_rates_get_columns_only_where_the_task_has_them(tmp_path):
     _report(tmp_path / 'cheetah' / 'cv0-sac-s1', 400.0, 410.0, None)
     assert 'success' not in _summary(tmp_path / 'cheetah')
@@ -57,6 +60,7 @@ def test_success_rates_get_columns_only_where_the_task_has_them(tmp_path):
     assert out.splitlines()[2].endswith('| 0.60 +- 0.10 | 0.60 +- 0.10 |')
 
 
+@pytest.mark.ros   # starts the summary script: a process, not a unit test
 def test_context_use_at_the_train_values_gets_a_column_where_reports_measured_it(tmp_path):
     _report(tmp_path / 'old' / 'cs-oracle-s1', 300.0, 350.0, 1.0)
     assert 'at the train values' not in _summary(tmp_path / 'old')
@@ -72,6 +76,7 @@ def test_context_use_at_the_train_values_gets_a_column_where_reports_measured_it
     assert out.splitlines()[2].endswith('| 5 +- 0 | 70 +- 10 |')
 
 
+@pytest.mark.ros   # starts the summary script: a process, not a unit test
 def test_live_swaps_count_as_covered_only_within_twenty_steps(tmp_path):
     swaps_per_seed = {1: [5, 20, 21, None], 2: [3, 4, 30, 40]}   # 2 of 4, then 2 of 4 covered
     for seed, steps in swaps_per_seed.items():
@@ -99,6 +104,7 @@ def _eval_log(folder: Path, returns: list[float]) -> None:
     (folder / 'eval_log.csv').write_text('\n'.join(rows) + '\n')
 
 
+@pytest.mark.ros   # starts the summary script: a process, not a unit test
 def test_learning_curves_average_the_seeds_of_a_group_over_their_common_steps(tmp_path):
     from zeus_ros.learning_tools.sweep_results import mean_curve, read_curve
     _eval_log(tmp_path / 'cv0-zeus-s1', [10.0, 30.0, 50.0])
@@ -161,6 +167,7 @@ def test_live_swaps_table_gives_decoded_means_and_keeps_recipes_apart():
     assert rows['sac'].endswith('| 100 | - | - |')                          # no decoder
 
 
+@pytest.mark.ros   # starts the summary script: a process, not a unit test
 def test_gaps_table_tests_the_oracle_against_sac_and_the_share_each_method_closes(tmp_path):
     for seed, (oracle, sac, rma) in enumerate([(700, 300, 620), (720, 320, 660),
                                                (710, 280, 640)], start=1):

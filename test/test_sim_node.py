@@ -144,6 +144,7 @@ def test_every_family_runs_as_a_node(sim, family):
     np.testing.assert_array_equal(state.position, env.joint_positions())
 
 
+@pytest.mark.alone   # counts steps per wall-clock second
 def test_realtime_mode_keeps_its_rate_and_switches_live(sim, ros_node):
     """Realtime steps on its own schedule; `mode` switches either way while running."""
     _, driver = sim(family='cheetah-run-v0', mode='realtime', command_timeout=0.05)

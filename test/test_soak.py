@@ -18,7 +18,8 @@ import time
 from conftest import REPO
 import pytest
 
-pytestmark = pytest.mark.ros   # starts processes of its own
+# Starts processes of its own; a soak's own wait is 300 s after its nodes' start.
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(600)]
 
 NODES = ['sim_node', 'context_node', 'policy_node']
 MINUTES = 0.75
@@ -107,6 +108,7 @@ def goal(result, prefix):
     return found[0]
 
 
+@pytest.mark.alone   # bounds an uncontrolled spell's wall-clock length (4-8 s)
 def test_soak_fails_when_states_flow_but_nothing_controls_them(tmp_path):
     """A stopped controller and a stopped sim fail the control goals (issue 39.3).
 

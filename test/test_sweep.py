@@ -60,6 +60,7 @@ def test_bad_sweep_file_is_refused(tmp_path):
             SweepConfig.load(bad)
 
 
+@pytest.mark.timeout(900)   # two sweeps, its own waits 240 s + 420 s
 def test_killed_sweep_resumes_its_trials_and_gathers_results(tmp_path):
     path = write_sweep(tmp_path, steps=240)
     cfg = SweepConfig.load(path)

@@ -9,9 +9,11 @@ import sys
 
 from ament_index_python.packages import get_package_share_directory, get_packages_with_prefixes
 from conftest import INSTALL_BIN, installed_exe, REPO, spin_until
+import pytest
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import parameter_value_to_python
 import yaml
+from zeus_ros.ros.graph import claim_free_domain
 from zeus_ros.ros.util import call_service
 
 
@@ -27,6 +29,10 @@ def test_ament_index_lists_both_packages():
     assert (share / 'package.xml').is_file()
 
 
+# Alone: the build rewrites install/, which the nodes of tests running beside it
+# would be started from (a half-written file is a failed import there).
+@pytest.mark.alone
+@pytest.mark.ros   # a colcon build of the ROS packages: not a unit test's half-second
 def test_the_build_prints_no_stderr_even_where_bytecode_is_off():
     # PYTHONDONTWRITEBYTECODE (set in some shells and containers) made setuptools
     # warn on stderr at every build: colcon's "1 package had stderr output" (#38.5).
@@ -62,7 +68,10 @@ def test_the_suite_hears_its_own_domain_and_not_another(spawn, ros_node):
     """The claimed ROS_DOMAIN_ID isolates the suite: a publisher on another id is never heard."""
     from std_msgs.msg import String
     ours = int(os.environ['ROS_DOMAIN_ID'])
-    other = 20 + (ours - 20 + 40) % 80
+    # Another domain held for this test: a fixed offset from ours could be
+    # another pytest worker's (or another checkout's), and the probe would join it.
+    claim = claim_free_domain()
+    other = claim.domain_id
     heard = set()
     ros_node.create_subscription(String, '/zeus_domain_probe',
                                  lambda msg: heard.add(msg.data), 10)
@@ -72,6 +81,7 @@ def test_the_suite_hears_its_own_domain_and_not_another(spawn, ros_node):
     assert spin_until(ros_node, lambda: f'domain {ours}' in heard, 30.0), heard
     spin_until(ros_node, lambda: False, 3.0)
     assert heard == {f'domain {ours}'}
+    claim.release()
 
 
 def test_ruff_lint_clean():

@@ -40,7 +40,10 @@ ROS_NAME = r'^[A-Za-z][A-Za-z0-9_]*$'
 # these names (test_family_file_sim.py checks the list against what the node declares).
 RESERVED_NAMES = frozenset({'family', 'family_file', 'seed', 'mode', 'real_time_factor',
                             'command_timeout', 'camera_rate', 'thread_priority', 'executor',
-                            'use_sim_time', 'start_type_description_service'})
+                            'use_sim_time', 'start_type_description_service',
+                            # the command port (#49)
+                            'command_type', 'command_topic', 'command_units', 'joints',
+                            'publish_step_info'})
 
 
 # The trainer runs an env per train task and samples a batch from each: beyond this

@@ -87,6 +87,10 @@ def _episode_stamps(run: dict, first: JointState) -> list[int]:
     return [start[0] + n * period for n in range(STEPS + 1)]
 
 
+# Alone: in the parallel pass of a fresh clone's `make test` (4 workers beside two
+# trainings) the robot run twice missed the reset's seeded first state, which the
+# comparison anchors on; serially it passes. The race is not yet found (#49).
+@pytest.mark.alone
 def test_the_window_without_step_info_is_the_step_info_window(spawn, ros_node):
     """publish_step_info false + action_source commands: the same windows and contexts."""
     reference = _loop(spawn, ros_node, robot=False)
@@ -252,7 +256,8 @@ def _free_running(spawn, ros_node, tmp_path, state_period: float, **policy) -> d
             'ratio': (len(commands) - mark_commands) / (len(states) - mark_states)}
 
 
-@pytest.mark.parametrize('rate, answered', [(2.0, 0.5), (0.5, 1.0)])
+@pytest.mark.alone   # states at a wall-clock rate: starved beside other tests, the cheetah
+@pytest.mark.parametrize('rate, answered', [(2.0, 0.5), (0.5, 1.0)])   # did not run (#51)
 def test_free_running_states_at_other_rates_are_decimated_to_the_trained_period(
         spawn, ros_node, tmp_path, rate, answered):
     """2x the trained rate: every other state acted on; 0.5x: every state."""

@@ -400,17 +400,33 @@ def _suspects(meta: CheckpointMetadata, cfg: ZeusConfig, want: dict, wrong: set)
     """
     scores = {}
     sizes = cfg.to_dict()   # the shared fields and this method's own settings
-    for name, limit in CONFIG_LIMITS.items():
-        if limit not in (WIDTH, LAYERS) or name not in sizes:
-            continue
-        for value in {max(sizes[name] - 1, limit.lo), sizes[name] + 1}:
+    for name, value in _moves(sizes):
+        try:
             with torch.device('meta'):
                 moved = _differing(want, _shapes(_policy_networks(
                     meta, cfg.replace(**{name: value}))[1]))
-            if moved & wrong:
-                score = len(moved & wrong) / len(moved | wrong)
-                scores[f'config.{name}'] = max(score, scores.get(f'config.{name}', 0.0))
+        except ValueError:
+            continue   # a flag this method cannot take flipped: not the culprit
+        if moved & wrong:
+            score = len(moved & wrong) / len(moved | wrong)
+            scores[f'config.{name}'] = max(score, scores.get(f'config.{name}', 0.0))
     return sorted(scores, key=scores.get, reverse=True)[:3] or ['config']
+
+
+def _moves(sizes: dict) -> list[tuple[str, int | bool]]:
+    """List the config moves to try: widths and layer counts one up and one down, flags flipped.
+
+    A flag can shape tensors too: context_reward sets psi's input width.
+    """
+    moves = []
+    for name, limit in CONFIG_LIMITS.items():
+        if name not in sizes:
+            continue
+        if limit in (WIDTH, LAYERS):
+            moves += [(name, v) for v in {max(sizes[name] - 1, limit.lo), sizes[name] + 1}]
+        elif limit is None and isinstance(sizes[name], bool):
+            moves.append((name, not sizes[name]))
+    return moves
 
 
 def load_training_checkpoint(path: str | Path, agent: Agent,

@@ -80,14 +80,9 @@ class ParamScale:
 
     def physical(self, normalised: np.ndarray) -> np.ndarray:
         """Normalised values [..., P] (numpy) -> physical values."""
-        return physical_values(normalised, self.offset, self.scale, self.log)
-
-
-def physical_values(normalised: np.ndarray, offset: Sequence[float], scale: Sequence[float],
-                    log: bool) -> np.ndarray:
-    """Undo `ParamScale.normalise` on numpy values [..., P] (the deployed decoder's read)."""
-    value = np.asarray(normalised, dtype=np.float64) * np.asarray(scale) + np.asarray(offset)
-    return np.exp(value) if log else value
+        value = np.asarray(normalised, dtype=np.float64) * np.asarray(self.scale) \
+            + np.asarray(self.offset)
+        return np.exp(value) if self.log else value
 
 
 @dataclass(frozen=True)
